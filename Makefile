@@ -1,0 +1,47 @@
+# shadowlab: `make demo` and `make test` set up everything they need (venv, package, libLLVM).
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+LLVM_PKG ?= libllvm19
+
+.PHONY: setup venv llvm demo test bench references clean
+
+setup: venv llvm
+
+venv: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[test]"
+	@touch $@
+
+# Dr.Jit's LLVM backend needs libLLVM >= 16 (Mitsuba 3.9 kernels abort on 14/15).
+llvm: venv
+	@if $(PY) -c "import sys; from shadowlab.backend import find_libllvm; sys.exit(0 if find_libllvm() else 1)"; then \
+		echo "libLLVM: $$($(PY) -c 'from shadowlab.backend import find_libllvm; print(find_libllvm())')"; \
+	elif [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+		echo "installing $(LLVM_PKG) for Dr.Jit's LLVM backend"; \
+		DEBIAN_FRONTEND=noninteractive apt-get install -y -q $(LLVM_PKG) >/dev/null 2>&1 || \
+		{ apt-get update -q >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -q $(LLVM_PKG) >/dev/null; }; \
+	else \
+		echo "error: no libLLVM >= 16 found. Run: sudo apt-get install $(LLVM_PKG)" \
+		     "(or set DRJIT_LIBLLVM_PATH to a libLLVM.so >= 16), then run make again." >&2; exit 3; \
+	fi
+
+demo: setup
+	$(VENV)/bin/shadowlab demo --out reports/demo
+
+test: setup
+	$(PY) -m pytest -q
+
+bench: setup
+	$(VENV)/bin/shadowlab bench --out reports/bench
+
+# Re-render the committed ground truth of every built-in scene at CI resolution.
+references: setup
+	for s in $$($(VENV)/bin/shadowlab scenes --names); do \
+		$(VENV)/bin/shadowlab reference $$s --force || exit $$?; done
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

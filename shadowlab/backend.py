@@ -1,0 +1,172 @@
+"""Variant choice, libLLVM check, thread count and seeds (DESIGN.md, "backend.py").
+
+Mitsuba 3.9 kernels abort inside libLLVM 14/15 ("LLVM ERROR: Cannot select ... fminimum"),
+which would kill the Python process. So before the first kernel runs in this process we
+(1) point Dr.Jit at the newest libLLVM >= 16 we can find unless ``DRJIT_LIBLLVM_PATH`` is set,
+and (2) run a real Mitsuba kernel in a *subprocess*: if it dies we raise
+:class:`EnvironmentProblem` (exit 3) naming the library and the fix instead of crashing.
+"""
+
+from __future__ import annotations
+
+import glob
+import hashlib
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+from .errors import EnvironmentProblem
+
+DEFAULT_VARIANT = "llvm_ad_rgb"
+SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+MIN_LLVM = 16
+FIX = ("install a libLLVM >= 16: on Debian/Ubuntu run `sudo apt-get install libllvm19` "
+       "(or `make setup`, which does it), or point DRJIT_LIBLLVM_PATH at a libLLVM.so >= 16")
+
+_LIB_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib",
+             "/usr/local/lib", "/opt/homebrew/opt/llvm/lib", "/usr/local/opt/llvm/lib")
+
+_state: dict = {"variant": None}
+
+# A kernel that exercises what broke on libLLVM 15: a ray cast plus min/max reductions.
+_PROBE = r"""
+import sys, drjit as dr, mitsuba as mi
+mi.set_variant(sys.argv[1])
+s = mi.load_dict({'type': 'scene', 's': {'type': 'sphere'}, 'r': {'type': 'rectangle'}})
+ray = mi.Ray3f(mi.Point3f(dr.linspace(mi.Float, -1, 1, 64), 0, 5), mi.Vector3f(0, 0, -1))
+si = s.ray_intersect(ray)
+v = dr.minimum(dr.maximum(si.t, 0.5), 10.0)
+dr.eval(v); dr.sync_thread()
+print('ok', dr.min(v).numpy())
+"""
+
+
+def llvm_version(path: str) -> int | None:
+    """Major version encoded in a libLLVM file name, e.g. ``libLLVM-19.so`` -> 19."""
+    m = re.search(r"libLLVM[-.]?(?:so\.)?(\d+)", os.path.basename(path))
+    return int(m.group(1)) if m else None
+
+
+def find_libllvm(min_version: int = MIN_LLVM) -> str | None:
+    """Newest libLLVM >= ``min_version`` in the usual library directories, or None."""
+    found = []
+    for d in _LIB_DIRS:
+        for p in glob.glob(os.path.join(d, "libLLVM*.so*")) + glob.glob(os.path.join(d, "libLLVM*.dylib")):
+            v = llvm_version(p)
+            if v is not None and v >= min_version:
+                found.append((v, len(p), p))
+    return sorted(found)[-1][2] if found else None
+
+
+def _cache_file(variant: str, lib: str | None) -> Path:
+    import importlib.metadata as md
+    try:
+        versions = md.version("mitsuba") + md.version("drjit")
+    except md.PackageNotFoundError:
+        versions = "?"
+    key = hashlib.sha1(f"{variant}|{lib}|{versions}|{sys.executable}".encode()).hexdigest()[:16]
+    base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "shadowlab"
+    return base / f"backend-ok-{key}.json"
+
+
+def probe(variant: str, lib: str | None) -> tuple[bool, str]:
+    """Run one Mitsuba kernel of ``variant`` in a subprocess; return (ok, stderr tail)."""
+    env = dict(os.environ)
+    if lib:
+        env["DRJIT_LIBLLVM_PATH"] = lib
+    try:
+        r = subprocess.run([sys.executable, "-c", _PROBE, variant], env=env, capture_output=True,
+                           text=True, timeout=300)
+    except subprocess.TimeoutExpired:
+        return False, "the probe kernel did not finish within 300 s"
+    ok = r.returncode == 0 and r.stdout.startswith("ok")
+    return ok, (r.stderr or r.stdout)[-600:]
+
+
+def init(variant: str | None = None, threads: int | None = None, check: bool = True) -> str:
+    """Select the Mitsuba variant once per process and make sure its backend works.
+
+    ``variant`` defaults to ``$SHADOWLAB_VARIANT`` or ``llvm_ad_rgb``. Raises EnvironmentProblem
+    (exit 3) when the LLVM backend cannot run a Mitsuba kernel. Returns the variant name.
+
+    >>> init()  # doctest: +SKIP
+    'llvm_ad_rgb'
+    """
+    variant = variant or os.environ.get("SHADOWLAB_VARIANT") or DEFAULT_VARIANT
+    if _state["variant"] is not None:
+        if variant != _state["variant"]:
+            raise EnvironmentProblem(f"variant {variant!r} requested after {_state['variant']!r} was "
+                                     "initialised in this process; run a new process to switch")
+        return variant
+    if variant not in SUPPORTED_VARIANTS:
+        from .errors import InputError
+        raise InputError(f"unknown variant {variant!r}; choose one of {', '.join(SUPPORTED_VARIANTS)}")
+    try:
+        import mitsuba  # noqa: F401
+        import drjit  # noqa: F401
+    except ImportError as e:  # pragma: no cover - depends on the machine
+        raise EnvironmentProblem(f"cannot import {e.name}: run `make setup` (or "
+                                 "`pip install -e .`) to install shadowlab's dependencies") from e
+
+    lib = None
+    if variant.startswith("llvm"):
+        lib = os.environ.get("DRJIT_LIBLLVM_PATH")
+        if lib:
+            v = llvm_version(lib)
+            if not os.path.exists(lib):
+                raise EnvironmentProblem(f"DRJIT_LIBLLVM_PATH={lib} does not exist; {FIX}")
+            if v is not None and v < MIN_LLVM:
+                raise EnvironmentProblem(f"DRJIT_LIBLLVM_PATH points at libLLVM {v} ({lib}); Mitsuba 3.9 "
+                                         f"kernels abort with libLLVM < {MIN_LLVM}; {FIX}")
+        else:
+            lib = find_libllvm()
+            if lib is None:
+                older = [p for d in _LIB_DIRS for p in glob.glob(os.path.join(d, "libLLVM*.so*"))]
+                have = f" (found only {', '.join(sorted(set(older)))})" if older else ""
+                raise EnvironmentProblem(f"no libLLVM >= {MIN_LLVM} found for Dr.Jit's LLVM backend{have}; {FIX}")
+            os.environ["DRJIT_LIBLLVM_PATH"] = lib
+    if check:
+        cache = _cache_file(variant, lib)
+        if not cache.exists():
+            ok, tail = probe(variant, lib)
+            if not ok:
+                raise EnvironmentProblem(
+                    f"the {variant} backend cannot run a Mitsuba kernel with {lib or 'the default library'}:\n"
+                    f"{tail.strip()}\nFix: {FIX}" if variant.startswith("llvm") else
+                    f"the {variant} backend does not work here:\n{tail.strip()}\n"
+                    "Fix: use --variant llvm_ad_rgb or install a CUDA driver")
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            cache.write_text(json.dumps({"variant": variant, "lib": lib}))
+    import drjit as dr
+    import mitsuba as mi
+    mi.set_variant(variant)
+    if threads:
+        dr.set_thread_count(int(threads))
+    _state["variant"] = variant
+    return variant
+
+
+def machine_info() -> dict:
+    """What a benchmark or reference ran on: CPU model, cores, library versions."""
+    import platform
+    import importlib.metadata as md
+    cpu = platform.processor()
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    info = {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
+            "platform": platform.platform(), "variant": _state["variant"],
+            "libllvm": os.environ.get("DRJIT_LIBLLVM_PATH")}
+    for pkg in ("mitsuba", "drjit"):
+        try:
+            info[pkg] = md.version(pkg)
+        except md.PackageNotFoundError:
+            info[pkg] = None
+    return info

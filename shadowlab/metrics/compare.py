@@ -1,0 +1,98 @@
+"""One-call comparisons of a technique's output with the ground truth, as dicts of python floats.
+
+``compare_visibility`` compares one light's visibility with the reference visibility;
+``compare_shaded`` compares the shaded image with the reference image, over the whole image and over
+the penumbra. A value is NaN only when its mask is empty (no valid pixel, no penumbra).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from shadowlab.io.exr import check_finite
+from shadowlab.metrics import image as _im
+from shadowlab.metrics import masks as _mk
+
+__all__ = ["compare_visibility", "compare_shaded", "SHADED_KEYS", "VISIBILITY_KEYS"]
+
+VISIBILITY_KEYS = (
+    "rmse", "mae", "rmse_penumbra", "mae_penumbra", "leak_rate", "overdark_rate",
+    "leak_mean", "overdark_mean", "penumbra_fraction",
+)
+_SHADED_BASE = ("rmse", "mae", "psnr", "ssim", "flip", "delta_e2000")
+SHADED_KEYS = _SHADED_BASE + tuple(f"{k}_penumbra" for k in _SHADED_BASE)
+
+
+def compare_visibility(vis, truth, valid=None) -> dict[str, float]:
+    """Error of one light's visibility against the truth visibility.
+
+    Keys: ``rmse``, ``mae`` (over the valid pixels), ``rmse_penumbra``, ``mae_penumbra`` (over the
+    truth's penumbra, see :func:`penumbra_mask`), ``leak_rate``, ``overdark_rate``, ``leak_mean``,
+    ``overdark_mean`` (see :mod:`shadowlab.metrics.masks`; 0.0 when the region is empty) and
+    ``penumbra_fraction`` (penumbra pixels / valid pixels). ``vis`` and ``truth`` are H×W or H×W×C;
+    colour visibility is reduced to its channel mean for the region tests.
+
+    >>> import numpy as np
+    >>> m = compare_visibility(np.array([[1.0, 0.5, 1.0]]), np.array([[0.0, 0.5, 1.0]]))
+    >>> m["leak_rate"], m["rmse_penumbra"], round(m["penumbra_fraction"], 3)
+    (1.0, 0.0, 0.333)
+    """
+    x, t = np.asarray(vis, dtype=np.float64), np.asarray(truth, dtype=np.float64)
+    pen = _mk.penumbra_mask(t, valid)
+    valid_m = _mk._valid(valid, pen.shape)
+    n_valid = int(np.count_nonzero(valid_m))
+    return {
+        "rmse": _im.rmse(x, t, valid_m),
+        "mae": _im.mae(x, t, valid_m),
+        "rmse_penumbra": _im.rmse(x, t, pen),
+        "mae_penumbra": _im.mae(x, t, pen),
+        "leak_rate": _mk.leak_rate(x, t, valid_m),
+        "overdark_rate": _mk.overdark_rate(x, t, valid_m),
+        "leak_mean": _mk.leak_mean(x, t, valid_m),
+        "overdark_mean": _mk.overdark_mean(x, t, valid_m),
+        "penumbra_fraction": (float(np.count_nonzero(pen)) / n_valid) if n_valid else float("nan"),
+    }
+
+
+def compare_shaded(img, truth, penumbra=None, valid=None) -> dict[str, float]:
+    """Image metrics of a shaded image against the ground-truth image, whole and in the penumbra.
+
+    Keys ``rmse, mae, psnr, ssim, flip, delta_e2000`` over the valid pixels (None = all) and the
+    same six with suffix ``_penumbra`` over ``penumbra & valid``; ``penumbra`` is an H×W bool mask
+    (for several lights the union of their penumbra masks); None means no penumbra, so the
+    ``_penumbra`` values are NaN. SSIM, FLIP and ΔE2000 maps are computed once on the whole images
+    and averaged over each mask. Both PSNRs use one peak, the maximum of ``truth`` over the valid
+    pixels, so the penumbra PSNR is on the same scale as the whole-image PSNR.
+
+    >>> import numpy as np
+    >>> x = np.full((16, 16, 3), 0.5)
+    >>> m = compare_shaded(x, x)
+    >>> m["rmse"], m["ssim"], m["flip"], m["delta_e2000"], m["psnr"]
+    (0.0, 1.0, 0.0, 0.0, inf)
+    """
+    t, r = _im._pair(img, truth)
+    shape2d = t.shape[:2]
+    valid_m = _im._mask(valid, shape2d)
+    if valid_m is None:
+        valid_m = np.ones(shape2d, dtype=bool)
+    pen = _im._mask(penumbra, shape2d)
+    pen = np.zeros(shape2d, dtype=bool) if pen is None else (pen & valid_m)
+
+    out: dict[str, float] = {}
+    if not valid_m.any():
+        return {k: float("nan") for k in SHADED_KEYS}
+    check_finite("shaded image", t)
+    check_finite("reference image", r)
+    peak = float(np.max(r[valid_m]))
+    maps = {
+        "ssim": _im._ssim_map(t, r, None),
+        "flip": _im._flip_map(t, r),
+        "delta_e2000": _im._delta_e2000_map(t, r),
+    }
+    for suffix, m in (("", valid_m), ("_penumbra", pen)):
+        out["rmse" + suffix] = _im.rmse(t, r, m)
+        out["mae" + suffix] = _im.mae(t, r, m)
+        out["psnr" + suffix] = _im.psnr(t, r, m, peak=peak)
+        for name, mp in maps.items():
+            out[name + suffix] = _im._masked_mean(mp, m)
+    return {k: out[k] for k in SHADED_KEYS}

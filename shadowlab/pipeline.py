@@ -1,0 +1,166 @@
+"""The main jobs, as functions the CLI and tests call: make a reference, compare techniques.
+
+    reference(scene)  : scene -> FrameContext -> ground truth -> references/<scene>/<W>x<H>/
+    compare(scene, …) : scene -> FrameContext (once) -> each technique -> metrics -> report
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import backend
+from .errors import InputError, ReferenceError_
+from .reference import store
+from .reference.truth import render_truth
+
+
+def _progress_bar(total_hint: int | None, desc: str, enabled: bool):
+    from tqdm import tqdm
+    return tqdm(total=total_hint, desc=desc, unit="ray", unit_scale=True, disable=not enabled, leave=False)
+
+
+def parse_resolution(text) -> tuple | None:
+    """'128x96' or '128' -> (128, 96) / (128, 128); None stays None."""
+    if text is None or text == "":
+        return None
+    if isinstance(text, (tuple, list)):
+        return tuple(int(x) for x in text)
+    t = str(text).lower().replace("×", "x")
+    try:
+        parts = [int(x) for x in t.split("x")] if "x" in t else [int(t)] * 2
+    except ValueError:
+        raise InputError(f"--resolution {text!r}: expected WIDTHxHEIGHT such as 128x128") from None
+    if len(parts) != 2 or min(parts) < 1 or max(parts) > 8192:
+        raise InputError(f"--resolution {text!r}: expected WIDTHxHEIGHT with sizes in 1..8192")
+    return tuple(parts)
+
+
+def load_scene(scene: str, resolution=None):
+    from .scene import load
+    backend.init()
+    return load(scene, resolution=resolution)
+
+
+def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0, target_se: float = 0.005,
+              strata: int = 8, max_rounds: int = 64, spp: int = 256, base: Path | None = None,
+              progress: bool = True) -> tuple[Path, dict]:
+    """Render and store the ground truth of ``scene``; returns (path, meta)."""
+    from .render.frame import make_frame
+    sc = load_scene(scene, resolution)
+    dest = store.path_for(sc.name, sc.resolution, base)
+    if dest.exists() and not force:
+        raise ReferenceError_(f"a reference already exists at {dest}; pass --force to replace it")
+    t0 = time.perf_counter()
+    frame = make_frame(sc, seed=seed)
+    with _progress_bar(None, f"truth {sc.name}", progress) as bar:
+        truth = render_truth(frame, k=strata, target_se=target_se, max_rounds=max_rounds, seed=seed, spp=spp,
+                             progress=bar.update)
+    wall = time.perf_counter() - t0
+    info = backend.machine_info()
+    meta = {"scene": sc.name, "scene_hash": sc.spec.digest(), "resolution": list(sc.resolution),
+            "mitsuba": info["mitsuba"], "drjit": info["drjit"], "variant": info["variant"], "seed": seed,
+            "wall_time_s": wall, "max_std_error": truth.stats["max_std_error"],
+            "samples": {"strata": f"{strata}x{strata} per round", "target_se": target_se, "max_rounds": max_rounds,
+                        "shadow_rays": truth.stats["shadow_rays"],
+                        "mean_rays_per_pixel": {n: float(l.samples[truth.mask].mean()) if truth.mask.any() else 0.0
+                                                for n, l in truth.lights.items()},
+                        "mitsuba_spp": spp},
+            "lights": [l.name for l in sc.lights], "stats": truth.stats, "machine": info}
+    path = store.save(truth, meta, dest, force=force)
+    return path, meta
+
+
+def run_techniques(frame, names: list[str], params: dict) -> dict:
+    """Render each technique once on ``frame``; returns {name: (ShadowResult, params, seconds)}."""
+    import drjit as dr
+    from .techniques import base
+    out = {}
+    for n in names:
+        t = base.get(n)
+        p = t.resolve(params.get(n, {}))
+        dr.sync_thread()
+        t0 = time.perf_counter()
+        res = t.render(frame, p)
+        dr.eval(*res.visibility.values())
+        dr.sync_thread()
+        out[n] = (res, p, time.perf_counter() - t0)
+    return out
+
+
+def technique_metrics(frame, truth, result) -> tuple[dict, dict, dict]:
+    """(metrics, per_light, images) of one ShadowResult against the truth."""
+    from .metrics import compare_shaded, compare_visibility, penumbra_mask
+    from .render.shading import compose
+    mask = truth.mask
+    per_light, vis_imgs = {}, {}
+    pen = np.zeros_like(mask)
+    pooled = {"leak": [0, 0], "overdark": [0, 0]}
+    for l in frame.lights:
+        v = frame.image(result.visibility[l.name])
+        vis_imgs[l.name] = v
+        valid = mask & frame.lit_mask(l.name)
+        tv = truth.lights[l.name].V
+        per_light[l.name] = compare_visibility(v, tv, valid)
+        pen |= penumbra_mask(tv, valid)
+        umbra = valid & (tv <= 0.02)
+        lit = valid & (tv >= 0.98)
+        pooled["leak"][0] += int((umbra & (v > 0.5)).sum())
+        pooled["leak"][1] += int(umbra.sum())
+        pooled["overdark"][0] += int((lit & (v < 0.5)).sum())
+        pooled["overdark"][1] += int(lit.sum())
+    shaded = compose(frame, result.visibility)
+    m = compare_shaded(shaded, truth.shaded, penumbra=pen, valid=mask)
+    m["leak_rate"] = pooled["leak"][0] / pooled["leak"][1] if pooled["leak"][1] else 0.0
+    m["overdark_rate"] = pooled["overdark"][0] / pooled["overdark"][1] if pooled["overdark"][1] else 0.0
+    m["vis_rmse"] = float(np.mean([d["rmse"] for d in per_light.values()]))
+    m["vis_rmse_penumbra"] = float(np.nanmean([d["rmse_penumbra"] for d in per_light.values()])) \
+        if any(np.isfinite(d["rmse_penumbra"]) for d in per_light.values()) else float("nan")
+    return m, per_light, {"shaded": shaded, "vis": vis_imgs}
+
+
+def compare(scene: str, techniques: list[str], sets: list[str] | None = None, out: Path | None = None,
+            resolution=None, *, render_missing: bool = True, progress: bool = True, base: Path | None = None,
+            params: dict | None = None) -> dict:
+    """Compare ``techniques`` with the stored truth of ``scene``; write a report to ``out``.
+
+    A missing reference is rendered and stored first (``render_missing``); a stale one is an error.
+    """
+    from .render.frame import make_frame
+    from .report import build
+    from .techniques import base as tbase
+    for n in techniques:
+        tbase.get(n)  # unknown names fail before any rendering
+    overrides = tbase.parse_sets(sets or [], techniques)
+    for n, p in (params or {}).items():
+        if n in overrides:
+            overrides[n] = {**p, **overrides[n]}
+    sc = load_scene(scene, resolution)
+    try:
+        truth, meta = store.load(sc.spec, sc.resolution, base)
+    except ReferenceError_ as e:
+        if "no reference" not in str(e) or not render_missing:
+            raise
+        reference(scene, sc.resolution, base=base, progress=progress)
+        truth, meta = store.load(sc.spec, sc.resolution, base)
+    frame = make_frame(sc, seed=int(meta.get("seed", 0)))
+    results = run_techniques(frame, techniques, overrides)
+    run = {"scene": sc.name, "resolution": list(sc.resolution),
+           "reference": {"spp": meta["samples"]["mean_rays_per_pixel"], "max_std_error": meta["max_std_error"],
+                         "shadow_rays": meta["samples"]["shadow_rays"], "seed": meta.get("seed"),
+                         "path": str(store.path_for(sc.name, sc.resolution, base))},
+           "lights": [l.name for l in sc.lights], "techniques": {},
+           "images": {"truth": {"shaded": truth.shaded, "vis": {n: lt.V for n, lt in truth.lights.items()}},
+                      "techniques": {}}, "machine": backend.machine_info()}
+    if truth.mitsuba is not None:
+        run["images"]["mitsuba"] = truth.mitsuba
+    for n, (res, p, secs) in results.items():
+        m, per_light, imgs = technique_metrics(frame, truth, res)
+        run["techniques"][n] = {"params": p, "time_s": secs, "metrics": m, "per_light": per_light,
+                                "stats": res.stats}
+        run["images"]["techniques"][n] = imgs
+    if out is not None:
+        build(Path(out), run)
+    return run

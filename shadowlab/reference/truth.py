@@ -1,0 +1,185 @@
+"""Ground truth: per-light visibility at the G-buffer points and the shaded image (Mitsuba).
+
+Visibility of light L at shading point x (DESIGN.md, Reference):
+
+    V_L(x) = ∫ f(x, y) v(x, y) dy / ∫ f(x, y) dy     (shadowed / unshadowed direct light)
+    A_L(x) = mean of v over the emitter's sample domain (visible area or solid-angle fraction)
+
+with f = bsdf · Le · cos / pdf from Mitsuba's emitter sampling and v from Mitsuba shadow rays
+(``render/shading.py``). Sampling is adaptive, in rounds of k×k jittered strata:
+
+1. every pixel gets ``min_rounds`` rounds;
+2. a pixel whose samples all agreed (all visible or all blocked) is done: lit and umbra
+   pixels converge at once (its error bound is then the rule of three, 3/n, stored as ``bound``);
+3. the others (penumbra) get a pilot of 8 rounds, whose variance plans the number of rounds
+   R = 1.25 · var / target_se², at least 16 (so half the rounds are fresh) and at most
+   ``max_rounds``; the standard error reported is
+   sqrt(var_rounds / R) over all rounds. Planning from the pilot rather than stopping when the
+   running estimate first dips below the target keeps the reported error honest (stopping
+   on it under-reports the error by ~20%, measured on analytic_sphere).
+
+The rounds are independent, so the standard error is an honest estimate. The shaded truth is
+Σ_L U_L · V_L at the same pixel centres as the techniques (so metrics isolate shadows), and
+Mitsuba's own ``direct`` integrator image (``mi.render``, box filter over the pixel) is stored
+beside it with a per-pixel variance from independent passes.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..render.frame import FrameContext
+from ..render.gbuffer import vec_numpy
+from ..render.shading import sample_light
+
+MIN_SE_ROUNDS = 8  # pilot rounds of a penumbra pixel before its number of rounds is planned
+PLAN_MARGIN = 1.25  # planned rounds = margin · pilot variance / target²
+
+
+@dataclass
+class LightTruth:
+    V: np.ndarray          # (H, W) visibility ratio
+    V_se: np.ndarray       # (H, W) standard error of V
+    A: np.ndarray          # (H, W) plain visible fraction
+    A_se: np.ndarray
+    samples: np.ndarray    # (H, W) shadow rays per pixel
+    bound: np.ndarray      # (H, W) error bound for unanimous pixels (3/n), 0 elsewhere
+    rays: int = 0
+
+
+@dataclass
+class Truth:
+    lights: dict                      # name -> LightTruth
+    U: dict                           # name -> (H, W, 3) unshadowed radiance
+    shaded: np.ndarray                # (H, W, 3) Σ U V
+    shaded_var: np.ndarray            # (H, W, 3)
+    mitsuba: np.ndarray | None        # (H, W, 3) mi.render direct
+    mitsuba_var: np.ndarray | None
+    mask: np.ndarray                  # (H, W) bool
+    view_depth: np.ndarray            # (H, W)
+    stats: dict = field(default_factory=dict)
+
+
+def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: float = 0.005,
+               min_rounds: int = 4, max_rounds: int = 64, seed: int = 0, progress=None) -> LightTruth:
+    """Adaptive ground-truth visibility of one light (see the module docstring).
+
+    ``progress(n)`` is called with the number of shadow rays of each round.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    scene, gb = frame.scene, frame.gbuffer
+    spec = scene.spec.light(light_name)
+    emitter = scene.emitters[light_name]
+    n_pts = gb.size
+    valid = gb.valid.numpy()
+    if spec.is_delta:
+        k, min_rounds, max_rounds = 1, 1, 1
+    kk = k * k
+    s_v = np.zeros(n_pts)
+    s_v2 = np.zeros(n_pts)
+    s_a = np.zeros(n_pts)
+    s_a2 = np.zeros(n_pts)
+    s_vis = np.zeros(n_pts)          # visible samples
+    rounds = np.zeros(n_pts, np.int64)
+    planned = np.zeros(n_pts, np.int64)
+    active = np.nonzero(valid)[0]
+    rays = 0
+    r = 0
+    while len(active) and r < max_rounds:
+        idx = mi.UInt32(active.astype(np.uint32))
+        si = dr.gather(type(gb.si), gb.si, idx)
+        _, fv, fsum, v = sample_light(scene, si, emitter, k, seed, r, True)
+        dr.eval(fv, fsum, v)
+        fv, fsum, v = fv.numpy().astype(np.float64), fsum.numpy().astype(np.float64), v.numpy().astype(np.float64)
+        Vr = np.where(fsum > 0, fv / np.where(fsum > 0, fsum, 1), 1.0)
+        Ar = v / kk
+        s_v[active] += Vr
+        s_v2[active] += Vr * Vr
+        s_a[active] += Ar
+        s_a2[active] += Ar * Ar
+        s_vis[active] += v
+        rounds[active] += 1
+        n_rays = len(active) * kk
+        rays += n_rays
+        if progress:
+            progress(n_rays)
+        r += 1
+        if r < min_rounds:
+            continue
+        R = rounds[active]
+        n = R * kk
+        unanimous = (s_vis[active] == 0) | (s_vis[active] == n)
+        mean = s_v[active] / R
+        var = np.maximum(s_v2[active] / R - mean * mean, 0.0) * R / np.maximum(R - 1, 1)
+        se = np.sqrt(var / R)
+        # plan the number of rounds from the pilot; re-plan only if the plan fell short
+        need = np.ceil(PLAN_MARGIN * var / target_se ** 2)
+        replan = (R >= MIN_SE_ROUNDS) & ((planned[active] == 0) | ((R >= planned[active]) & (se > target_se)))
+        planned[active] = np.where(replan, np.clip(need, np.maximum(R + (planned[active] > 0), 2 * MIN_SE_ROUNDS),
+                                                   max_rounds), planned[active])
+        done = unanimous | ((planned[active] > 0) & (R >= planned[active]))
+        active = active[~done]
+    R = np.maximum(rounds, 1)
+    V = np.where(valid, s_v / R, 1.0)
+    A = np.where(valid, s_a / R, 1.0)
+
+    def _se(s, s2):
+        m = s / R
+        var = np.maximum(s2 / R - m * m, 0.0) * R / np.maximum(R - 1, 1)
+        return np.where(rounds > 1, np.sqrt(var / R), 0.0)
+
+    n = rounds * kk
+    unanimous = valid & ((s_vis == 0) | (s_vis == n))
+    bound = np.where(unanimous & ~np.bool_(spec.is_delta), 3.0 / np.maximum(n, 1), 0.0)
+    img = gb.to_image
+    return LightTruth(V=img(V), V_se=img(_se(s_v, s_v2)), A=img(A), A_se=img(_se(s_a, s_a2)),
+                      samples=img(n.astype(np.float64)), bound=img(bound), rays=int(rays))
+
+
+def mitsuba_render(scene, spp: int = 256, passes: int = 4, seed: int = 0):
+    """Mitsuba's own ``direct`` integrator image and the variance of its mean over ``passes``
+    independent renders of spp/passes samples each."""
+    import drjit as dr
+    import mitsuba as mi
+    integrator = mi.load_dict({"type": "direct"})
+    per = max(1, spp // passes)
+    imgs = [np.asarray(mi.render(scene.mi_scene, spp=per, seed=seed * 1000 + i, integrator=integrator))
+            for i in range(passes)]
+    stack = np.stack(imgs).astype(np.float64)
+    mean = stack.mean(0)
+    var = stack.var(0, ddof=1) / passes if passes > 1 else np.zeros_like(mean)
+    return mean.astype(np.float32), var.astype(np.float32)
+
+
+def render_truth(frame: FrameContext, *, k: int = 8, target_se: float = 0.005, max_rounds: int = 64,
+                 seed: int = 0, spp: int = 256, progress=None) -> Truth:
+    """The whole ground truth of a frame: every light's visibility, Σ U·V and mi.render."""
+    import drjit as dr
+    gb = frame.gbuffer
+    t0 = time.perf_counter()
+    lights, U = {}, {}
+    shaded = 0.0
+    var = 0.0
+    for l in frame.lights:
+        lt = visibility(frame, l.name, k=k, target_se=target_se, max_rounds=max_rounds, seed=seed, progress=progress)
+        lights[l.name] = lt
+        U[l.name] = gb.to_image(vec_numpy(frame.unshadowed[l.name]))
+        shaded = shaded + U[l.name] * lt.V[..., None]
+        var = var + (U[l.name] * lt.V_se[..., None]) ** 2
+    dr.sync_thread()
+    t_vis = time.perf_counter() - t0
+    mean, mvar = mitsuba_render(frame.scene, spp=spp, seed=seed) if spp else (None, None)
+    dr.sync_thread()
+    mask = gb.to_image(gb.mask.reshape(-1).astype(np.float32)) > 0.5
+    stats = {"visibility_time_s": t_vis, "mitsuba_time_s": time.perf_counter() - t0 - t_vis,
+             "shadow_rays": int(sum(l.rays for l in lights.values())),
+             "max_std_error": float(max(float(l.V_se[mask].max()) if mask.any() else 0.0 for l in lights.values())),
+             "spp_mitsuba": spp, "strata": k, "target_se": target_se, "max_rounds": max_rounds, "seed": seed}
+    return Truth(lights=lights, U=U, shaded=np.asarray(shaded, np.float32), shaded_var=np.asarray(var, np.float32),
+                 mitsuba=mean, mitsuba_var=mvar, mask=mask, view_depth=gb.to_image(gb.view_depth.reshape(-1)),
+                 stats=stats)

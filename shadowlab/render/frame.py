@@ -1,0 +1,55 @@
+"""FrameContext: scene + G-buffer + unshadowed light + light views, built once per run.
+
+Every technique of a comparison reads the same FrameContext (DESIGN.md, data flow), so
+primary rays, unshadowed light and shadow maps are computed once and shared.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .gbuffer import GBuffer, gbuffer, vec_numpy
+from .lightview import LightView, light_view
+from .shading import unshadowed
+
+
+@dataclass
+class FrameContext:
+    scene: object
+    gbuffer: GBuffer
+    unshadowed: dict                       # light name -> flat mi.Color3f U_L
+    _views: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def lights(self):
+        return self.scene.spec.lights
+
+    @property
+    def resolution(self):
+        return self.scene.resolution
+
+    def light_view(self, light_name: str, res: int | None = None, bits: int | None = None,
+                   backface: bool = False) -> LightView:
+        """The light's depth map, cast once per (light, resolution, depth bits, back faces)."""
+        spec = self.scene.spec.light(light_name)
+        key = (light_name, int(res or spec.shadow_map), int(bits or spec.depth_bits), bool(backface))
+        if key not in self._views:
+            self._views[key] = light_view(self.scene, spec, res=key[1], bits=key[2], backface=key[3])
+        return self._views[key]
+
+    def lit_mask(self, light_name: str) -> np.ndarray:
+        """(H, W) bool: pixels the light reaches at all (U_L > 0); visibility only matters there."""
+        U = vec_numpy(self.unshadowed[light_name]).sum(1)
+        return self.gbuffer.to_image(U) > 0
+
+    def image(self, flat) -> np.ndarray:
+        return self.gbuffer.to_image(flat)
+
+
+def make_frame(scene, ss: int = 1, u_strata: int = 16, seed: int = 0) -> FrameContext:
+    """G-buffer at pixel (sub-)centres and U_L for every light."""
+    gb = gbuffer(scene, ss=ss)
+    U = {l.name: unshadowed(scene, gb, l.name, k=u_strata, seed=seed) for l in scene.spec.lights}
+    return FrameContext(scene=scene, gbuffer=gb, unshadowed=U)

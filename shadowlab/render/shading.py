@@ -1,0 +1,106 @@
+"""Direct light from one emitter by stratified emitter sampling, with or without visibility.
+
+One estimator serves both sides of a comparison, so they differ only in visibility:
+
+* unshadowed radiance ``U_L`` at each shading point (no shadow rays), which a technique's
+  visibility multiplies: ``shaded = Σ_L U_L · V_L``;
+* the ground truth (``reference/truth.py``), which adds Mitsuba shadow rays and estimates
+  ``V_L = ∫ f v / ∫ f`` (the ratio of shadowed to unshadowed direct light) and the plain
+  visible fraction ``A_L`` (area for rect/disk lights, solid angle for spheres: Mitsuba's
+  sphere emitter samples its visible cone uniformly).
+
+Samples: a k×k jittered grid on the emitter's 2D sample domain per round, random numbers
+from PCG32 seeded by (seed, round, point): same seed, same bits.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .gbuffer import vec_numpy
+
+
+def _hash32(*vals) -> int:
+    h = 2166136261
+    for v in vals:
+        for b in int(v).to_bytes(8, "little", signed=False):
+            h = ((h ^ b) * 16777619) & 0xFFFFFFFF
+    return h
+
+
+def sample_light(scene, si, emitter, k: int, seed: int, rnd: int, shadow: bool):
+    """One round of k×k stratified samples of ``emitter`` at every interaction of ``si``.
+
+    Returns Dr.Jit arrays per point: ``f`` (Color3f, Σ of bsdf·Le·cos/pdf over the samples,
+    i.e. k² times the unshadowed estimate), ``fv`` (Float, Σ |f|·v), ``fsum`` (Float, Σ |f|)
+    and ``v`` (Float, number of unoccluded samples). Visibility is only traced when ``shadow``.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    n = dr.width(si.p)
+    idx = dr.arange(mi.UInt32, n)
+    rng = mi.PCG32(n, mi.UInt64(_hash32(seed, rnd)), mi.UInt64(idx))
+    return _loop(scene.mi_scene, si, emitter, rng, mi.UInt32(k), shadow)
+
+
+@__import__("drjit").syntax
+def _loop(mi_scene, si, emitter, rng, k, shadow):
+    import drjit as dr
+    import mitsuba as mi
+    ctx = mi.BSDFContext()
+    bsdf = si.bsdf()
+    n = dr.width(si.p)
+    f = mi.Color3f(0.0)
+    fv = dr.zeros(mi.Float, n)
+    fsum = dr.zeros(mi.Float, n)
+    v = dr.zeros(mi.Float, n)
+    i = mi.UInt32(0)
+    kk = k * k
+    while i < kk:
+        sx = mi.Float(i % k)
+        sy = mi.Float(i // k)
+        u = mi.Point2f((sx + rng.next_float32()) / mi.Float(k), (sy + rng.next_float32()) / mi.Float(k))
+        ds, w = emitter.sample_direction(si, u, si.is_valid())
+        wo = si.to_local(ds.d)
+        fs = bsdf.eval(ctx, si, wo, si.is_valid())
+        c = fs * w
+        c = dr.select(si.is_valid() & (ds.pdf > 0), c, 0.0)
+        mag = c.x + c.y + c.z
+        if shadow:
+            occluded = mi_scene.ray_test(si.spawn_ray_to(ds.p), si.is_valid() & (mag > 0))
+            vis = dr.select(occluded, 0.0, 1.0)
+        else:
+            vis = mi.Float(1.0)
+        f += c
+        fv += mag * vis
+        fsum += mag
+        v += vis
+        i += 1
+    return f, fv, fsum, v
+
+
+def unshadowed(scene, gbuffer, light_name: str, k: int = 16, seed: int = 0):
+    """Unshadowed outgoing radiance U_L at every G-buffer point (flat mi.Color3f), estimated
+    with k×k stratified emitter samples (a delta light needs and gets one)."""
+    import drjit as dr
+    import mitsuba as mi
+    spec = scene.spec.light(light_name)
+    k = 1 if spec.is_delta else k
+    f, _, _, _ = sample_light(scene, gbuffer.si, scene.emitters[light_name], k, seed, 0xFFFF, False)
+    U = dr.select(gbuffer.valid, f / float(k * k), 0.0)
+    dr.eval(U)
+    return U
+
+
+def compose(frame, visibility: dict) -> np.ndarray:
+    """Shaded image (H, W, 3) = Σ_L U_L · V_L, averaged over sub-pixels.
+
+    ``visibility`` maps light name -> flat per-point visibility (Dr.Jit Float or numpy)."""
+    out = None
+    for name, U in frame.unshadowed.items():
+        V = visibility[name]
+        V = V.numpy() if hasattr(V, "numpy") else np.asarray(V)
+        c = vec_numpy(U) * V.reshape(-1, 1)
+        out = c if out is None else out + c
+    return frame.gbuffer.to_image(out)

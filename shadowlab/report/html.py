@@ -1,0 +1,566 @@
+"""Build a report directory from one run: index.html, summary.md, metrics.json and img/*.png.
+
+The run dict (see ``build``) holds the numbers and, under ``"images"``, the numpy arrays.
+``metrics.json`` is the run without ``"images"``: numpy scalars and arrays become plain JSON
+values and **NaN / ±inf are written as null** (JSON has no NaN; a null metric means "not
+available", e.g. a PSNR of identical images, which is +inf, or a penumbra metric without penumbra).
+
+Signed error heat maps show technique − truth: blue = technique darker, white = equal, red =
+brighter. Three-channel images are compared by luminance. Per light, and for the shaded image,
+all techniques share one colour scale (the largest of their 99th percentiles of |error|), so equal
+colours mean equal errors across techniques; the report prints each scale next to its colour bar.
+Shaded images share one exposure per report (the truth's 99th-percentile luminance -> 0.9).
+
+Building is atomic and safe: everything is validated first (bad input raises ``InputError`` and
+leaves ``out_dir`` untouched), then written into a temporary sibling directory and moved into
+place. In an existing ``out_dir`` only index.html, summary.md, metrics.json and img/ are replaced;
+other files stay.
+"""
+
+from __future__ import annotations
+
+import html as _html
+import json
+import math
+import numbers
+import os
+import re
+import shutil
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from urllib.parse import quote
+
+import numpy as np
+
+from shadowlab.errors import InputError
+from shadowlab.report import images as _im
+
+__all__ = ["build", "summary_table", "validate", "run_to_json", "to_jsonable", "higher_is_better"]
+
+OUTPUT_FILES = ("index.html", "summary.md", "metrics.json")
+OUTPUT_DIRS = ("img",)
+_HIGHER_IS_BETTER_PREFIXES = ("psnr", "ssim")
+_IMG_CSS_WIDTH = 256
+_NA = "n/a"
+
+
+# --------------------------------------------------------------------------------------------
+# JSON
+
+
+def to_jsonable(obj, key: str = "run"):
+    """Plain-JSON copy of ``obj``: numpy scalars/arrays -> Python values, tuples -> lists,
+    NaN/±inf -> None. Anything else that JSON cannot hold raises ``InputError`` naming ``key``.
+
+    >>> to_jsonable({"a": np.float32(0.5), "b": float("nan"), "c": (np.int64(3),)})
+    {'a': 0.5, 'b': None, 'c': [3]}
+    """
+    if obj is None or isinstance(obj, (str, bool)):
+        return obj
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    if isinstance(obj, numbers.Integral):
+        return int(obj)
+    if isinstance(obj, numbers.Real):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, np.ndarray):
+        if obj.dtype.kind not in "biuf":
+            raise InputError(f"{key}: a numpy array of dtype {obj.dtype} cannot be written to metrics.json")
+        return to_jsonable(obj.tolist(), key)
+    if isinstance(obj, Mapping):
+        out = {}
+        for k, v in obj.items():
+            if not isinstance(k, str):
+                raise InputError(f"{key}: dictionary key {k!r} is not a string; metrics.json needs string keys")
+            out[str(k)] = to_jsonable(v, f"{key}.{k}")
+        return out
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v, f"{key}[{i}]") for i, v in enumerate(obj)]
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    raise InputError(f"{key}: a value of type {type(obj).__name__} cannot be written to metrics.json")
+
+
+def run_to_json(run: Mapping) -> dict:
+    """The run without ``"images"``, as plain JSON (what ``metrics.json`` holds).
+
+    >>> run_to_json({"scene": "s", "images": {}, "resolution": (2, 2)})
+    {'scene': 's', 'resolution': [2, 2]}
+    """
+    return to_jsonable({k: v for k, v in run.items() if k != "images"})
+
+
+# --------------------------------------------------------------------------------------------
+# validation
+
+
+def _number(v, key: str, allow_none: bool = True, finite: bool = False) -> float | None:
+    if v is None and allow_none:
+        return None
+    if isinstance(v, np.ndarray) and v.ndim == 0:
+        v = v.item()
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
+        raise InputError(f"{key}: expected a number, got {type(v).__name__} {v!r:.60}")
+    v = float(v)
+    if finite and not math.isfinite(v):
+        raise InputError(f"{key}: expected a finite number, got {v}")
+    return v
+
+
+def _mapping(d, key: str) -> Mapping:
+    if not isinstance(d, Mapping):
+        raise InputError(f"{key}: expected a dict, got {type(d).__name__}")
+    return d
+
+
+def _get(d: Mapping, name: str, where: str):
+    if name not in d:
+        raise InputError(f"{where}: the key {name!r} is missing (needed: {where}.{name})")
+    return d[name]
+
+
+def _image(a, key: str, hw: tuple[int, int], channels: tuple[int, ...]) -> np.ndarray:
+    try:
+        arr = np.asarray(a)
+    except Exception as e:  # e.g. a Dr.Jit tensor that fails to convert
+        raise InputError(f"{key}: cannot be converted to a numpy array ({e})") from None
+    if arr.dtype.kind not in "biuf":
+        raise InputError(f"{key}: expected a numeric image, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64)
+    ok_shapes = [hw if c == 0 else (*hw, c) for c in channels]
+    if arr.shape not in ok_shapes:
+        want = " or ".join("×".join(map(str, s)) for s in ok_shapes)
+        raise InputError(f"{key}: image shape {arr.shape} does not match the run resolution; expected {want}")
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        raise InputError(f"{key}: image contains {int(bad.sum())} NaN or inf values; fix the renderer output first")
+    return arr
+
+
+def _check_metric_dict(d, key: str) -> None:
+    for m, v in _mapping(d, key).items():
+        if not isinstance(m, str):
+            raise InputError(f"{key}: metric name {m!r} is not a string")
+        _number(v, f"{key}.{m}")
+
+
+def validate(run: Mapping, need_images: bool = True) -> dict:
+    """Check a run dict; raise ``InputError`` naming the bad key. Returns the images as float64
+    arrays: ``{"truth": {...}, "mitsuba": arr|None, "techniques": {...}}`` (empty dict when
+    ``need_images`` is false).
+    """
+    run = _mapping(run, "run")
+    scene = _get(run, "scene", "run")
+    if not isinstance(scene, str) or not scene:
+        raise InputError(f"run.scene: expected a non-empty string, got {scene!r}")
+    res = _get(run, "resolution", "run")
+    try:
+        res = list(res)
+    except TypeError:
+        raise InputError(f"run.resolution: expected [W, H], got {res!r}") from None
+    if len(res) != 2 or not all(
+        isinstance(x, numbers.Integral) and not isinstance(x, (bool, np.bool_)) and x > 0 for x in res
+    ):
+        raise InputError(f"run.resolution: expected [W, H] with positive integers, got {res!r}")
+    w, h = int(res[0]), int(res[1])
+    ref = _mapping(_get(run, "reference", "run"), "run.reference")
+    _number(_get(ref, "spp", "run.reference"), "run.reference.spp", allow_none=False, finite=True)
+    _number(_get(ref, "max_std_error", "run.reference"), "run.reference.max_std_error", allow_none=False)
+    lights = _get(run, "lights", "run")
+    if not isinstance(lights, (list, tuple)) or not all(isinstance(x, str) and x for x in lights):
+        raise InputError(f"run.lights: expected a list of light names, got {lights!r}")
+    if len(set(lights)) != len(lights):
+        raise InputError(f"run.lights: light names must be unique, got {list(lights)}")
+    techs = _mapping(_get(run, "techniques", "run"), "run.techniques")
+    for name, t in techs.items():
+        where = f"run.techniques.{name}"
+        if not isinstance(name, str) or not name:
+            raise InputError(f"run.techniques: technique name {name!r} is not a non-empty string")
+        t = _mapping(t, where)
+        _mapping(_get(t, "params", where), f"{where}.params")
+        _number(_get(t, "time_s", where), f"{where}.time_s")
+        _check_metric_dict(_get(t, "metrics", where), f"{where}.metrics")
+        per_light = _mapping(_get(t, "per_light", where), f"{where}.per_light")
+        for ln, d in per_light.items():
+            if ln not in lights:
+                raise InputError(f"{where}.per_light.{ln}: {ln!r} is not in run.lights {list(lights)}")
+            _check_metric_dict(d, f"{where}.per_light.{ln}")
+    run_to_json(run)  # every non-image value must be JSON-serialisable
+
+    if not need_images:
+        return {}
+    imgs = _mapping(_get(run, "images", "run"), "run.images")
+    hw = (h, w)
+
+    def frame(d, where):
+        d = _mapping(d, where)
+        shaded = _image(_get(d, "shaded", where), f"{where}.shaded", hw, (3, 0, 1))
+        vis_d = _mapping(_get(d, "vis", where), f"{where}.vis")
+        extra = [k for k in vis_d if k not in lights]
+        if extra:
+            raise InputError(f"{where}.vis.{extra[0]}: {extra[0]!r} is not in run.lights {list(lights)}")
+        vis = {ln: _image(_get(vis_d, ln, f"{where}.vis"), f"{where}.vis.{ln}", hw, (0, 1, 3)) for ln in lights}
+        return {"shaded": shaded, "vis": vis}
+
+    out = {"truth": frame(_get(imgs, "truth", "run.images"), "run.images.truth")}
+    mts = imgs.get("mitsuba")
+    out["mitsuba"] = None if mts is None else _image(mts, "run.images.mitsuba", hw, (3, 0, 1))
+    timgs = _mapping(_get(imgs, "techniques", "run.images"), "run.images.techniques")
+    for name in timgs:
+        if name not in techs:
+            raise InputError(f"run.images.techniques.{name}: there is no run.techniques.{name} entry for it")
+    out["techniques"] = {
+        name: frame(_get(timgs, name, "run.images.techniques"), f"run.images.techniques.{name}") for name in techs
+    }
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# tables
+
+
+def higher_is_better(metric: str) -> bool:
+    """True for metrics where larger is better (psnr*, ssim*); errors, rates and time are lower-better.
+
+    >>> higher_is_better("psnr"), higher_is_better("rmse_penumbra")
+    (True, False)
+    """
+    return metric.lower().startswith(_HIGHER_IS_BETTER_PREFIXES)
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return _NA
+    v = float(v)
+    if math.isnan(v):
+        return _NA
+    if math.isinf(v):
+        return "inf" if v > 0 else "-inf"
+    return f"{v:.4g}"
+
+
+def _metric_columns(techs: Mapping) -> list[str]:
+    cols: list[str] = []
+    for t in techs.values():
+        for m in t.get("metrics", {}):
+            if m not in cols:
+                cols.append(m)
+    return cols
+
+
+def _table_cells(run: Mapping) -> tuple[list[str], list[str], list[list[tuple[str, bool]]]]:
+    """(column names incl. time_s, technique names, rows of (formatted value, is_best))."""
+    techs = run["techniques"]
+    cols = _metric_columns(techs) + ["time_s"]
+    names = list(techs)
+
+    def val(name, col):
+        t = techs[name]
+        v = t.get("time_s") if col == "time_s" else t["metrics"].get(col)
+        v = None if v is None else float(v)
+        return None if v is None or math.isnan(v) else v
+
+    best = {}
+    for c in cols:
+        vs = [v for v in (val(n, c) for n in names) if v is not None]
+        if vs:
+            best[c] = max(vs) if higher_is_better(c) else min(vs)
+    rows = [[(_fmt(val(n, c)), c in best and val(n, c) == best[c]) for c in cols] for n in names]
+    return cols, names, rows
+
+
+def _reference_line(run: Mapping) -> str:
+    ref = run["reference"]
+    spp = ref["spp"]
+    spp_s = str(int(spp)) if float(spp).is_integer() else _fmt(spp)
+    return f"Reference: {spp_s} spp, max standard error {_fmt(ref['max_std_error'])}"
+
+
+def _md_escape(s: str) -> str:
+    return s.replace("\\", "\\\\").replace("|", "\\|").replace("\n", " ")
+
+
+def summary_table(run: Mapping) -> str:
+    """Markdown summary: a title, the reference line and one table row per technique (4 significant
+    digits, best value per column in bold). Works on a full run or on a loaded metrics.json.
+    This is what summary.md holds and what the CLI prints.
+
+    >>> run = {"scene": "s", "resolution": [4, 4], "reference": {"spp": 64, "max_std_error": 0.01},
+    ...        "lights": ["key"], "techniques": {"hard": {"params": {}, "time_s": 0.0012,
+    ...        "metrics": {"rmse": 0.123456, "psnr": 18.2}, "per_light": {}}}}
+    >>> print(summary_table(run))  # doctest: +NORMALIZE_WHITESPACE
+    # shadowlab report: s (4x4)
+    <BLANKLINE>
+    Reference: 64 spp, max standard error 0.01
+    <BLANKLINE>
+    | technique | rmse | psnr | time_s |
+    |---|---:|---:|---:|
+    | hard | **0.1235** | **18.2** | **0.0012** |
+    <BLANKLINE>
+    Best value per column in bold (highest for psnr/ssim, lowest otherwise). n/a = not available (NaN/inf are null in metrics.json).
+    """
+    validate(run, need_images=False)
+    w, h = (int(x) for x in run["resolution"])
+    cols, names, rows = _table_cells(run)
+    lines = [
+        f"# shadowlab report: {_md_escape(run['scene'])} ({w}x{h})",
+        "",
+        _reference_line(run),
+        "",
+        "| technique | " + " | ".join(_md_escape(c) for c in cols) + " |",
+        "|---|" + "---:|" * len(cols),
+    ]
+    for n, row in zip(names, rows):
+        cells = [f"**{s}**" if b else s for s, b in row]
+        lines.append(f"| {_md_escape(n)} | " + " | ".join(cells) + " |")
+    if not names:
+        lines.append("| (no techniques) |" + " |" * len(cols))
+    lines += [
+        "",
+        "Best value per column in bold (highest for psnr/ssim, lowest otherwise). "
+        f"{_NA} = not available (NaN/inf are null in metrics.json).",
+    ]
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# HTML
+
+_CSS = f"""
+body {{ font-family: system-ui, sans-serif; margin: 1.5em; color: #222; }}
+h1 {{ font-size: 1.5em; margin-bottom: .2em; }}
+h2 {{ font-size: 1.2em; margin-top: 1.6em; border-bottom: 1px solid #ccc; }}
+.ref {{ color: #444; margin-top: 0; }}
+table.metrics {{ border-collapse: collapse; font-variant-numeric: tabular-nums; }}
+table.metrics th, table.metrics td {{ border: 1px solid #ccc; padding: 3px 8px; text-align: right; }}
+table.metrics th:first-child, table.metrics td:first-child {{ text-align: left; }}
+table.grid {{ border-collapse: collapse; }}
+table.grid th, table.grid td {{ padding: 4px 6px; vertical-align: top; text-align: left; }}
+table.grid th.row {{ max-width: 14em; font-weight: normal; font-size: .85em; }}
+img.im {{ width: {_IMG_CSS_WIDTH}px; height: auto; image-rendering: pixelated; border: 1px solid #bbb; display: block; }}
+img.cbar {{ width: {_IMG_CSS_WIDTH}px; height: 10px; image-rendering: pixelated; display: block; margin-top: 3px; }}
+.ticks {{ width: {_IMG_CSS_WIDTH}px; display: flex; justify-content: space-between; font-size: .75em; color: #444; }}
+.note {{ font-size: .85em; color: #555; }}
+code {{ font-size: .9em; }}
+"""
+
+
+def _slug(s: str) -> str:
+    return (re.sub(r"[^A-Za-z0-9_-]+", "-", s).strip("-") or "x")[:40]
+
+
+def _e(s) -> str:
+    return _html.escape(str(s), quote=True)
+
+
+def _img_tag(fname: str, alt: str) -> str:
+    return f'<img class="im" src="img/{quote(fname)}" alt="{_e(alt)}" title="{_e(alt)}">'
+
+
+def _legend(scale: float) -> str:
+    s = _fmt(scale)
+    return (
+        '<img class="cbar" src="img/colorbar.png" alt="colour scale">'
+        f'<div class="ticks"><span>&minus;{s}</span><span>0</span><span>+{s}</span></div>'
+    )
+
+
+def _metric_line(d: Mapping) -> str:
+    return " · ".join(f"{_e(k)} {_e(_fmt(v))}" for k, v in d.items())
+
+
+def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
+    """Write all PNGs into ``img_dir`` and return the HTML text."""
+    lights = list(run["lights"])
+    techs = run["techniques"]
+    w, h = (int(x) for x in run["resolution"])
+    truth = imgs["truth"]
+    exposure = _im.common_exposure(truth["shaded"])
+
+    def put(fname: str, data: bytes) -> str:
+        (img_dir / fname).write_bytes(data)
+        return fname
+
+    put("colorbar.png", _im.colorbar_png())
+    truth_shaded = put("truth_shaded.png", _im.shaded_png(truth["shaded"], exposure))
+    truth_vis = {
+        ln: put(f"truth_vis_{j}_{_slug(ln)}.png", _im.visibility_png(truth["vis"][ln])) for j, ln in enumerate(lights)
+    }
+    truth_lum = _im.luminance(truth["shaded"])
+
+    # Shared colour scale per light and for the shaded image, across techniques.
+    vis_err = {
+        name: {ln: _im.luminance(imgs["techniques"][name]["vis"][ln]) - _im.luminance(truth["vis"][ln]) for ln in lights}
+        for name in techs
+    }
+    shaded_err = {name: _im.luminance(imgs["techniques"][name]["shaded"]) - truth_lum for name in techs}
+    vis_scale = {ln: max([_im.error_scale(vis_err[n][ln]) for n in techs], default=1e-6) for ln in lights}
+    shaded_scale = max([_im.error_scale(e) for e in shaded_err.values()], default=1e-6)
+
+    p = [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>shadowlab: {_e(run['scene'])} {w}×{h}</title>",
+        f"<style>{_CSS}</style></head><body>",
+        f"<h1>shadowlab report: {_e(run['scene'])} — {w}×{h}</h1>",
+        f'<p class="ref">{_e(_reference_line(run))}</p>',
+    ]
+    extra_ref = {k: v for k, v in run["reference"].items() if k not in ("spp", "max_std_error")}
+    if extra_ref:
+        p.append(f'<p class="note">Reference details: {_metric_line_any(extra_ref)}</p>')
+
+    # metrics table
+    cols, names, rows = _table_cells(run)
+    p.append("<h2>Metrics</h2>")
+    p.append('<table class="metrics"><thead><tr><th>technique</th>')
+    p += [f"<th>{_e(c)}</th>" for c in cols]
+    p.append("</tr></thead><tbody>")
+    for i, (n, row) in enumerate(zip(names, rows)):
+        cells = "".join(f"<td><b>{_e(s)}</b></td>" if b else f"<td>{_e(s)}</td>" for s, b in row)
+        p.append(f'<tr><td><a href="#t{i}">{_e(n)}</a></td>{cells}</tr>')
+    p.append("</tbody></table>")
+    p.append(
+        '<p class="note">Best value per column in bold (highest for psnr/ssim, lowest for errors, rates and '
+        f"time). {_NA}: not available; NaN/inf are stored as null in metrics.json. Heat maps show the signed "
+        "error technique − truth: <span style=\"color:#2166ac\">blue = technique darker</span>, white = equal, "
+        "<span style=\"color:#b2182b\">red = technique brighter</span>; three-channel images are compared by "
+        "luminance; for each light (and for the shaded image) all techniques share one colour scale. "
+        f"Visibility: grey level = visibility. Shaded images: common exposure {_e(_fmt(exposure))} "
+        "(truth 99th-percentile luminance → 0.9), sRGB.</p>"
+    )
+
+    # ground truth
+    p.append("<h2>Ground truth</h2>")
+    p.append('<table class="grid"><tr><th></th><th>truth (shaded)</th>')
+    if imgs["mitsuba"] is not None:
+        p.append("<th>Mitsuba <code>mi.render</code></th><th>signed error (mi.render − truth)</th>")
+    p.append("</tr><tr><th class=\"row\">shaded</th>")
+    p.append(f"<td>{_img_tag(truth_shaded, 'truth shaded')}</td>")
+    if imgs["mitsuba"] is not None:
+        mts = put("mitsuba.png", _im.shaded_png(imgs["mitsuba"], exposure))
+        merr = _im.luminance(imgs["mitsuba"]) - truth_lum
+        mscale = _im.error_scale(merr)
+        merr_f = put("mitsuba_err.png", _im.encode_png(_im.signed_error_heatmap(merr, mscale)))
+        p.append(f"<td>{_img_tag(mts, 'Mitsuba mi.render')}</td>")
+        p.append(f"<td>{_img_tag(merr_f, 'signed error mi.render - truth')}{_legend(mscale)}</td>")
+    p.append("</tr></table>")
+
+    # per technique
+    for i, name in enumerate(techs):
+        t = techs[name]
+        ti = imgs["techniques"][name]
+        tag = f"t{i}_{_slug(name)}"
+        p.append(f'<h2 id="t{i}">{_e(name)}</h2>')
+        params = " ".join(f"<code>{_e(k)}={_e(json.dumps(to_jsonable(v)))}</code>" for k, v in t["params"].items())
+        p.append(f'<p class="note">time {_e(_fmt(t["time_s"]))} s. Parameters: {params or "none"}</p>')
+        p.append(
+            '<table class="grid"><tr><th></th><th>technique</th><th>truth</th>'
+            "<th>signed error (technique − truth)</th></tr>"
+        )
+        for j, ln in enumerate(lights):
+            vf = put(f"{tag}_vis_{j}_{_slug(ln)}.png", _im.visibility_png(ti["vis"][ln]))
+            ef = put(
+                f"{tag}_vis_{j}_{_slug(ln)}_err.png",
+                _im.encode_png(_im.signed_error_heatmap(vis_err[name][ln], vis_scale[ln])),
+            )
+            pl = t["per_light"].get(ln, {})
+            p.append(
+                f'<tr><th class="row"><b>{_e(ln)}</b> visibility<br>{_metric_line(pl)}</th>'
+                f"<td>{_img_tag(vf, f'{name} visibility {ln}')}</td>"
+                f"<td>{_img_tag(truth_vis[ln], f'truth visibility {ln}')}</td>"
+                f"<td>{_img_tag(ef, f'signed error {name} {ln}')}{_legend(vis_scale[ln])}</td></tr>"
+            )
+        sf = put(f"{tag}_shaded.png", _im.shaded_png(ti["shaded"], exposure))
+        sef = put(f"{tag}_shaded_err.png", _im.encode_png(_im.signed_error_heatmap(shaded_err[name], shaded_scale)))
+        p.append(
+            f'<tr><th class="row"><b>shaded</b><br>{_metric_line(t["metrics"])}</th>'
+            f"<td>{_img_tag(sf, f'{name} shaded')}</td>"
+            f"<td>{_img_tag(truth_shaded, 'truth shaded')}</td>"
+            f"<td>{_img_tag(sef, f'signed error {name} shaded')}{_legend(shaded_scale)}</td></tr>"
+        )
+        p.append("</table>")
+
+    extra = {k: v for k, v in run.items() if k not in ("scene", "resolution", "reference", "lights", "techniques", "images")}
+    if extra:
+        p.append("<h2>Run</h2>")
+        p.append(f"<pre>{_e(json.dumps(to_jsonable(extra), indent=2))}</pre>")
+    p.append("</body></html>")
+    return "\n".join(p) + "\n"
+
+
+def _metric_line_any(d: Mapping) -> str:
+    return " · ".join(f"{_e(k)} {_e(json.dumps(to_jsonable(v)))}" for k, v in d.items())
+
+
+# --------------------------------------------------------------------------------------------
+# build
+
+
+def _install(tmp: Path, out: Path) -> None:
+    """Move the built files from ``tmp`` into ``out``; only our files are replaced."""
+    if not out.exists():
+        try:
+            os.rename(tmp, out)  # atomic; fails if out_dir appeared meanwhile and is non-empty
+            return
+        except OSError:
+            pass
+    old_img = tmp / ".old-img"
+    if os.path.lexists(out / "img"):
+        os.rename(out / "img", old_img)
+    try:
+        os.rename(tmp / "img", out / "img")
+    except BaseException:
+        if os.path.lexists(old_img):
+            os.rename(old_img, out / "img")
+        raise
+    for f in ("metrics.json", "summary.md", "index.html"):  # index.html last: it links the rest
+        os.replace(tmp / f, out / f)
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+def build(out_dir, run: Mapping) -> Path:
+    """Write ``out_dir/index.html``, ``summary.md``, ``metrics.json`` and ``img/*.png`` for one run;
+    returns the path of index.html.
+
+    ``run`` = {"scene", "resolution": [W, H], "reference": {"spp", "max_std_error", ...},
+    "lights": [names], "images": {"truth": {"shaded": H×W×3, "vis": {light: H×W}},
+    "mitsuba": H×W×3 (optional), "techniques": {name: {"shaded", "vis"}}},
+    "techniques": {name: {"params", "time_s", "metrics", "per_light"}}, ...extra JSON keys}.
+    Bad input raises ``InputError`` naming the key, before anything is written.
+
+    >>> import numpy as np, tempfile
+    >>> z = np.zeros((8, 8)); s = np.full((8, 8, 3), .5)
+    >>> run = {"scene": "demo", "resolution": [8, 8], "reference": {"spp": 16, "max_std_error": .01},
+    ...        "lights": ["key"], "techniques": {"hard": {"params": {"bias": .001}, "time_s": .002,
+    ...        "metrics": {"rmse": .1}, "per_light": {"key": {"rmse": .1}}}},
+    ...        "images": {"truth": {"shaded": s, "vis": {"key": z}},
+    ...                   "techniques": {"hard": {"shaded": s, "vis": {"key": z}}}}}
+    >>> build(tempfile.mkdtemp() + "/r", run).name
+    'index.html'
+    """
+    out = Path(out_dir)
+    imgs = validate(run)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"report output {out} exists and is not a directory; choose another --out")
+    for f in OUTPUT_FILES:
+        if (out / f).is_dir():
+            raise InputError(f"report output {out / f} is a directory; remove it or choose another --out")
+    json_text = json.dumps(run_to_json(run), indent=2, allow_nan=False) + "\n"
+    md_text = summary_table(run) + "\n"
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.building-"))
+    try:
+        (tmp / "img").mkdir()
+        html_text = _render(run, imgs, tmp / "img")
+        (tmp / "metrics.json").write_text(json_text, encoding="utf-8")
+        (tmp / "summary.md").write_text(md_text, encoding="utf-8")
+        (tmp / "index.html").write_text(html_text, encoding="utf-8")
+        os.chmod(tmp, 0o755)  # mkdtemp makes it 0700; the report directory should be readable
+        _install(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out / "index.html"

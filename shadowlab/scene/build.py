@@ -1,0 +1,155 @@
+"""SceneSpec -> a loaded Mitsuba scene, its camera and its lights' emitters.
+
+Shapes are loaded with ``optimize=False`` so each keeps its own id (DESIGN.md, Dr.Jit facts);
+the shape id of a pixel in the G-buffer is the index into ``Scene.shape_names``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from ..errors import SceneError
+from . import lights as lights_mod
+from .spec import SceneSpec, load_spec, resolve
+
+
+def _transform(s):
+    import mitsuba as mi
+    T = mi.ScalarTransform4f
+    m = T().translate(list(s.translate))
+    for ax, ay, az, deg in s.rotate:
+        m = m @ T().rotate([ax, ay, az], deg)
+    return m @ T().scale(list(s.scale))
+
+
+def _bsdf(s):
+    d = {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(s.albedo)}}
+    return {"type": "twosided", "material": d} if s.two_sided else d
+
+
+def shape_dicts(s) -> dict:
+    """Mitsuba dicts of one ShapeSpec (a cylinder with caps gives three shapes)."""
+    import mitsuba as mi
+    T = mi.ScalarTransform4f
+    M = _transform(s)
+    b = _bsdf(s)
+    if s.type == "rectangle":
+        return {s.name: {"type": "rectangle", "to_world": M, "bsdf": b}}
+    if s.type == "disk":
+        return {s.name: {"type": "disk", "to_world": M, "bsdf": b}}
+    if s.type == "cube":
+        return {s.name: {"type": "cube", "to_world": M, "bsdf": b}}
+    if s.type == "sphere":
+        c = s.center or (0, 0, 0)
+        return {s.name: {"type": "sphere", "to_world": M @ T().translate(list(c)) @ T().scale(s.radius), "bsdf": b}}
+    if s.type == "cylinder":
+        p0, p1 = list(s.p0), list(s.p1)
+        axis = [b_ - a_ for a_, b_ in zip(p0, p1)]
+        length = math.sqrt(sum(x * x for x in axis))
+        if length == 0:
+            raise SceneError(f"shape {s.name!r}: cylinder p0 and p1 are the same point")
+        up = [0, 1, 0] if abs(axis[1]) < 0.99 * length else [1, 0, 0]
+        frame = T().look_at(origin=p0, target=p1, up=up)
+        out = {s.name: {"type": "cylinder", "to_world": M @ frame @ T().scale([s.radius, s.radius, length]), "bsdf": b}}
+        if s.caps:
+            out[s.name + "__cap0"] = {"type": "disk", "to_world": M @ frame @ T().scale([s.radius, s.radius, 1])
+                                     @ T().rotate([1, 0, 0], 180), "bsdf": b}
+            out[s.name + "__cap1"] = {"type": "disk", "to_world": M @ frame @ T().translate([0, 0, length])
+                                     @ T().scale([s.radius, s.radius, 1]), "bsdf": b}
+        return out
+    return {s.name: {"type": s.type, "filename": s.filename, "to_world": M, "bsdf": b,
+                     "face_normals": True}}
+
+
+@dataclass
+class Scene:
+    """A loaded scene: spec, Mitsuba scene, camera sensor and light emitters.
+
+    ``center`` / ``radius`` bound the non-emitting geometry (light cameras are fitted to it).
+    ``shape_names[i]`` is the name of Mitsuba shape ``i``; ``emitters[name]`` the light's emitter.
+    """
+
+    spec: SceneSpec
+    mi_scene: object
+    sensor: object
+    emitters: dict
+    light_shapes: dict
+    shape_names: list
+    center: tuple
+    radius: float
+    bbox_min: tuple = field(default=(0, 0, 0))
+    bbox_max: tuple = field(default=(0, 0, 0))
+    shape_boxes: list = field(default_factory=list)  # (min, max) of each non-emitting shape
+
+    @property
+    def name(self):
+        return self.spec.name
+
+    @property
+    def resolution(self):
+        return tuple(self.spec.camera.resolution)
+
+    @property
+    def lights(self):
+        return self.spec.lights
+
+
+def sensor_dict(cam, spp: int = 1, seed: int = 0) -> dict:
+    import mitsuba as mi
+    W, H = cam.resolution
+    return {"type": "perspective", "fov": cam.fov, "fov_axis": "x", "near_clip": 1e-3, "far_clip": 1e5,
+            "to_world": mi.ScalarTransform4f().look_at(origin=list(cam.position), target=list(cam.target),
+                                                      up=list(lights_mod._up_for(
+                                                          lights_mod._unit([t - p for t, p in zip(cam.target, cam.position)]),
+                                                          cam.up))),
+            "film": {"type": "hdrfilm", "width": W, "height": H, "rfilter": {"type": "box"},
+                     "pixel_format": "rgb"},
+            "sampler": {"type": "independent", "sample_count": spp, "seed": seed}}
+
+
+def build(spec: SceneSpec) -> Scene:
+    """Load ``spec`` into Mitsuba (the backend must be initialised)."""
+    import mitsuba as mi
+    geom = {}
+    for s in spec.shapes:
+        geom.update(shape_dicts(s))
+    try:
+        probe = mi.load_dict({"type": "scene", **geom}, optimize=False)
+    except Exception as e:  # Mitsuba's message names the plugin and the parameter
+        raise SceneError(f"{spec.source}: Mitsuba could not load the shapes: {e}") from e
+    boxes = [(tuple(sh.bbox().min), tuple(sh.bbox().max)) for sh in probe.shapes()]
+    bb = probe.bbox()
+    lo, hi = tuple(bb.min), tuple(bb.max)
+    center = tuple((a + b) / 2 for a, b in zip(lo, hi))
+    radius = max(1e-3, 0.5 * math.sqrt(sum((b - a) ** 2 for a, b in zip(lo, hi))))
+    d = {"type": "scene", **geom, "sensor": sensor_dict(spec.camera)}
+    for l in spec.lights:
+        key, ld = lights_mod.mitsuba_dict(l, center, radius)
+        d[key] = ld
+    try:
+        ms = mi.load_dict(d, optimize=False)
+    except Exception as e:
+        raise SceneError(f"{spec.source}: Mitsuba could not load the scene: {e}") from e
+    names = [sh.id() for sh in ms.shapes()]
+    emitters, light_shapes = {}, {}
+    by_id = {sh.id(): sh for sh in ms.shapes()}
+    em_by_id = {e.id(): e for e in ms.emitters()}
+    for l in spec.lights:
+        key = f"light_{l.name}"
+        if key in by_id:
+            emitters[l.name] = by_id[key].emitter()
+            light_shapes[l.name] = names.index(key)
+        else:
+            emitters[l.name] = em_by_id[key]
+    return Scene(spec=spec, mi_scene=ms, sensor=ms.sensors()[0], emitters=emitters, light_shapes=light_shapes,
+                 shape_names=names, center=center, radius=radius, bbox_min=lo, bbox_max=hi,
+                 shape_boxes=boxes)
+
+
+def load(scene: str, resolution: tuple | None = None) -> Scene:
+    """Built-in scene name or TOML path -> loaded Scene, optionally at another resolution."""
+    spec = load_spec(resolve(scene))
+    if resolution:
+        spec = spec.with_resolution(*resolution)
+    return build(spec)
