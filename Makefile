@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 LLVM_PKG ?= libllvm19
 
-.PHONY: setup venv llvm demo test bench references clean
+.PHONY: setup venv llvm demo test bench references docs clean
 
 setup: venv llvm
 
@@ -45,3 +45,7 @@ references: setup
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
+
+# Regenerate the README sections that come from scene files, technique declarations and the bench.
+docs: venv
+	$(PY) -m shadowlab.docs

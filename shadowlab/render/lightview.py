@@ -42,6 +42,12 @@ class Face:
     near: float
     far: float
 
+    def __post_init__(self):  # plain Python floats: Dr.Jit constructors refuse numpy scalars
+        object.__setattr__(self, "origin", tuple(float(x) for x in self.origin))
+        object.__setattr__(self, "R", tuple(tuple(float(x) for x in row) for row in self.R))
+        for k in ("scale", "near", "far"):
+            object.__setattr__(self, k, float(getattr(self, k)))
+
 
 @dataclass(frozen=True)
 class Projection:

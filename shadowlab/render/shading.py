@@ -28,8 +28,9 @@ def _hash32(*vals) -> int:
     return h
 
 
-def sample_light(scene, si, emitter, k: int, seed: int, rnd: int, shadow: bool):
-    """One round of k×k stratified samples of ``emitter`` at every interaction of ``si``.
+def sample_light(scene, si, emitter, k: int, seed: int, rnd: int, shadow: bool, stratified: bool = True):
+    """One round of k×k stratified samples of ``emitter`` at every interaction of ``si``
+    (``stratified=False``: k² independent uniform samples, for comparison in the benchmark).
 
     Returns Dr.Jit arrays per point: ``f`` (Color3f, Σ of bsdf·Le·cos/pdf over the samples,
     i.e. k² times the unshadowed estimate), ``fv`` (Float, Σ |f|·v), ``fsum`` (Float, Σ |f|)
@@ -40,12 +41,13 @@ def sample_light(scene, si, emitter, k: int, seed: int, rnd: int, shadow: bool):
 
     n = dr.width(si.p)
     idx = dr.arange(mi.UInt32, n)
-    rng = mi.PCG32(n, mi.UInt64(_hash32(seed, rnd)), mi.UInt64(idx))
-    return _loop(scene.mi_scene, si, emitter, rng, mi.UInt32(k), shadow)
+    # opaque: a literal seed would be baked into the kernel and compile a new one every round
+    rng = mi.PCG32(n, dr.opaque(mi.UInt64, _hash32(seed, rnd)), mi.UInt64(idx))
+    return _loop(scene.mi_scene, si, emitter, rng, mi.UInt32(k), shadow, stratified)
 
 
 @__import__("drjit").syntax
-def _loop(mi_scene, si, emitter, rng, k, shadow):
+def _loop(mi_scene, si, emitter, rng, k, shadow, stratified):
     import drjit as dr
     import mitsuba as mi
     ctx = mi.BSDFContext()
@@ -58,9 +60,12 @@ def _loop(mi_scene, si, emitter, rng, k, shadow):
     i = mi.UInt32(0)
     kk = k * k
     while i < kk:
-        sx = mi.Float(i % k)
-        sy = mi.Float(i // k)
-        u = mi.Point2f((sx + rng.next_float32()) / mi.Float(k), (sy + rng.next_float32()) / mi.Float(k))
+        if stratified:
+            sx = mi.Float(i % k)
+            sy = mi.Float(i // k)
+            u = mi.Point2f((sx + rng.next_float32()) / mi.Float(k), (sy + rng.next_float32()) / mi.Float(k))
+        else:
+            u = mi.Point2f(rng.next_float32(), rng.next_float32())
         ds, w = emitter.sample_direction(si, u, si.is_valid())
         wo = si.to_local(ds.d)
         fs = bsdf.eval(ctx, si, wo, si.is_valid())

@@ -74,9 +74,9 @@ class Param:
 
     def range_text(self) -> str:
         if self.kind == "choice":
-            return " | ".join(map(str, self.choices))
+            return ", ".join(map(str, self.choices))
         if self.kind == "bool":
-            return "true | false"
+            return "true, false"
         return f"[{self.lo:g}, {self.hi:g}]" if self.lo is not None and self.hi is not None else ""
 
 

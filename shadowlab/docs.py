@@ -1,0 +1,71 @@
+"""README sections generated from their single sources: scene files and technique declarations.
+
+``python -m shadowlab.docs`` rewrites the marked sections of README.md in place
+(``<!-- NAME:begin -->`` … ``<!-- NAME:end -->``); ``--check`` exits 1 if they are stale.
+The bench section is copied from reports/bench/bench.md when that file exists.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def scenes_section() -> str:
+    from .scene.spec import builtin_names, load_spec, resolve
+    rows = ["| scene | lights | description |", "|---|---|---|"]
+    for n in builtin_names():
+        s = load_spec(resolve(n))
+        lights = ", ".join(f"`{l.name}` ({l.kind})" for l in s.lights)
+        rows.append(f"| `{n}` | {lights} | {s.description} |")
+    return "\n".join(rows)
+
+
+def techniques_section() -> str:
+    from .techniques import base
+    parts = []
+    for n in base.names():
+        t = base.get(n)
+        parts.append(f"### `{t.name}`: {t.title}\n\n{t.summary.strip()}\n\nSource: {t.source}.\n\n"
+                     f"{base.param_table_markdown(t)}\n")
+    return "\n".join(parts).rstrip()
+
+
+def bench_section() -> str | None:
+    p = ROOT / "reports" / "bench" / "bench.md"
+    if not p.exists():
+        return None
+    text = p.read_text().strip()
+    return re.sub(r"^# ", "### ", text, flags=re.M)
+
+
+def render(readme: str, sections: dict) -> str:
+    for name, body in sections.items():
+        if body is None:
+            continue
+        pat = re.compile(rf"(<!-- {name}:begin -->\n).*?(<!-- {name}:end -->)", re.S)
+        if not pat.search(readme):
+            raise ValueError(f"README.md has no <!-- {name}:begin --> … <!-- {name}:end --> markers")
+        readme = pat.sub(lambda m: m.group(1) + body + "\n" + m.group(2), readme)
+    return readme
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    path = ROOT / "README.md"
+    old = path.read_text()
+    sections = {"scenes": scenes_section(), "techniques": techniques_section()}
+    if "--check" in argv:
+        return 0 if render(old, sections) == old else 1
+    sections["bench"] = bench_section()
+    new = render(old, sections)
+    if new != old:
+        path.write_text(new)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,274 @@
+"""Plain shadow map (``hard``) with the bias variants of 003_b5589b67cce60746.txt §2.3.
+
+Source: 003_b5589b67cce60746.txt §2.1 (principle: project the shaded point into the light's
+clip space and compare its NDC depth with the stored one) and §2.3 "Nedostatci i poboljšanja"
+(shadow acne and its fixes, light leaking / Peter Panning when the bias is too large).
+The depth maps are :class:`~shadowlab.render.lightview.LightView` s (ray cast per texel centre,
+quantised to the light's 16/24-bit UNORM or 32-bit float format).
+
+Visibility of a shading point p with geometric normal n (1 lit, 0 shadowed):
+
+1. *normal offset* (receiver side): p' = p + n · normal_offset · w(p), w(p) the world size of
+   one shadow-map texel at p's light-space depth; n is the G-buffer's geometric normal facing
+   the camera, i.e. the outward normal of every visible closed surface;
+2. *receiver bias* (§2.3, Slika 2.8): z̃ = z(p') − constant_bias − min(ε·tan∠(n, l),
+   max_slope_bias), ε = ``slope_bias``, l the direction to the light, d̃ = NDC depth of z̃;
+3. *rasterizer bias* (§2.3, Direct3D ``D3D11_RASTERIZER_DESC``), added to the stored caster
+   depth D of the texel as the rasterizer would have when it wrote the map::
+
+       Bias = DepthBias · r + SlopeScaledDepthBias · max(|∂d/∂x|, |∂d/∂y|)
+       r    = 2^(exponent(D) − 23)       (32-bit float depth; exponent of the texel's own depth,
+                                           the closest we have to "max z in primitive")
+       r    = 1 / (2^bits − 1)           (16/24-bit UNORM: "the minimum representable value > 0")
+       DepthBiasClamp > 0: Bias = min(clamp, Bias);  < 0: Bias = max(clamp, Bias);  0: no clamp
+       D'   = saturate(D + Bias)
+
+   The map holds D = quantise(d), not the rasterizer's quantise(d + Bias); D + Bias has the same
+   error distribution (Bias plus a rounding error uniform in ± half a step) and equals it exactly
+   for a whole number of UNORM steps, whereas re-quantising D + Bias would drop any Bias below
+   half a step;
+4. *test*: lit = H(D' − d̃) (nearest texel; empty texels are lit); ``backface`` uses the map
+   of the first surfaces facing away from the light (front faces culled, §2.3 Slika 2.7).
+
+Points outside the light camera or without a surface get visibility 1.
+
+Defaults, measured against exact point-light visibility (a Mitsuba shadow ray to the light
+camera's centre) over the pixels facing that point, on ``contact`` (rect light seen from its
+centre, 1024² fp32 map, 128² image) and on the floor + box + sphere scene under a ``point`` light of
+``tests/test_techniques_shadow_map.py`` (512² cube map); acne = over-darkening rate, leaks =
+leak rate (Peter Panning), ``shadowlab.metrics``:
+
+| biases                                   | acne contact | acne point | leaks contact | leaks point |
+|------------------------------------------|--------------|------------|---------------|-------------|
+| all 0                                    | 50 %         | 54 %       | 0.3 %         | 0.9 %       |
+| defaults                                 | 0.04 %       | 0.04 %     | 1.4 %         | 1.1 %       |
+| ``slope_scaled_depth_bias`` 1 only       | 0.1 %        | 2.3 %      | 1.0 %         | 0.9 %       |
+| ``normal_offset`` 1 texel only           | 0.07 %       | 0.05 %     | 2.0 %         | 1.6 %       |
+| ``backface`` only                        | 0.06 %       | 0.05 %     | 1.2 %         | 0.9 %       |
+| ``constant_bias`` 1.0 (world units)      | 0.01 %       | 0.01 %     | 31 %          | 42 %        |
+
+* ``slope_scaled_depth_bias`` = 2: a planar caster's depth changes by at most 1× its slope
+  between a texel centre and any point of the texel, so 1 suffices for ``hard``; 2 also keeps
+  the default 3×3 ``pcf`` (taps one texel away) nearly free of acne (mean over-darkening on
+  ``contact`` 17 % → 0.5 %) for +0.4 % leaks, and does not depend on the map resolution;
+* ``depth_bias`` = 16 (16 ulp of fp32, 16 steps of UNORM): surfaces facing the light head-on have
+  slope 0, and float32 rounding of D and d̃ alone gives 2.3 % acne on the point scene;
+* receiver-side world-unit biases and ``normal_offset`` stay 0: they grow the leaks for no
+  further acne reduction here, and world units do not scale with the scene or the map;
+* ``depth_bias_clamp`` = 0: grazing casters need their large slope bias (a clamp of 1e-3 NDC
+  brings back 3 % acne on ``contact``).
+
+All parameters are piecewise constant in the visibility (a step function of every bias), so none
+is ``differentiable``; fitting searches them without gradients. Every continuous value enters the
+kernel through ``dr.opaque``: a new value reuses the compiled kernel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from ..errors import InputError
+from .base import Param, ShadowResult, Technique, param_table_markdown, register
+
+SOURCE = "003 §2.3"
+RES_MIN, RES_MAX = 64, 8192
+
+#: The shadow-map and bias parameters every shadow-map technique shares (hard, pcf, ...).
+BIAS_PARAMS = (
+    Param("resolution", 0, "int", 0, RES_MAX, "texels", False, source=SOURCE,
+          doc="shadow-map side per face; 0 = the light's `shadow_map` from the scene, else 64…8192"),
+    Param("depth_bits", 0, "choice", units="bits", choices=(0, 16, 24, 32), source=SOURCE,
+          doc="depth format: 16/24-bit UNORM or 32-bit float; 0 = the light's `depth_bits`"),
+    Param("depth_bias", 16, "int", -1_000_000, 1_000_000, "DepthBias units (r)", False, source=SOURCE,
+          doc="Direct3D DepthBias: Bias += DepthBias·r, r = 2^(exponent(d)−23) (fp32) or 1/(2^bits−1) "
+              "(UNORM), added to the stored caster depth"),
+    Param("slope_scaled_depth_bias", 2.0, "float", -64.0, 64.0, "× NDC depth slope per texel", False,
+          source=SOURCE, doc="Direct3D SlopeScaledDepthBias: Bias += value × the caster's max NDC depth slope (∂d/∂x, ∂d/∂y)"),
+    Param("depth_bias_clamp", 0.0, "float", -1.0, 1.0, "NDC depth", False, source=SOURCE,
+          doc="Direct3D DepthBiasClamp: > 0 Bias = min(clamp, Bias), < 0 Bias = max(clamp, Bias), 0 = none"),
+    Param("constant_bias", 0.0, "float", 0.0, 10.0, "world units", False, source=SOURCE,
+          doc="subtracted from the receiver's light-space z before the test"),
+    Param("slope_bias", 0.0, "float", 0.0, 10.0, "world units", False, source=SOURCE,
+          doc="ε of bias = ε·tan(angle(n, l)), subtracted from the receiver's light-space z"),
+    Param("max_slope_bias", 0.05, "float", 0.0, 10.0, "world units", False, source=SOURCE,
+          doc="upper bound of ε·tan(angle(n, l)) (tan grows without bound at grazing light)"),
+    Param("normal_offset", 0.0, "float", 0.0, 8.0, "texels", False, source=SOURCE,
+          doc="move the receiver along its geometric normal by this many texel widths (at its depth) "
+              "before projecting"),
+    Param("backface", False, "bool", source=SOURCE,
+          doc="front-face culling: the map stores the first surface facing away from the light"),
+)
+
+
+# ----------------------------------------------------------------------------------------------
+# shared helpers (pcf and later shadow-map techniques reuse them)
+
+def check_map_params(values: dict, technique: str) -> None:
+    """Refuse resolutions 1…63 (the declared range [0, 8192] cannot say "0 or 64…8192")."""
+    r = values.get("resolution", 0)
+    if r != 0 and not RES_MIN <= r <= RES_MAX:
+        raise InputError(f"{technique}.resolution={r} is out of range: allowed 0 (the light's shadow_map) "
+                         f"or {RES_MIN}…{RES_MAX} texels")
+
+
+def map_settings(frame, light_name: str, values: dict) -> tuple[int, int]:
+    """(resolution, depth bits) of ``light_name``'s map: the parameter, or the light's own when 0."""
+    spec = frame.scene.spec.light(light_name)
+    res = int(values.get("resolution") or spec.shadow_map)
+    bits = int(values.get("depth_bits") or spec.depth_bits)
+    return res, bits
+
+
+def view_for(frame, light_name: str, values: dict):
+    """The (cached) LightView a shadow-map technique samples for ``light_name``."""
+    res, bits = map_settings(frame, light_name, values)
+    return frame.light_view(light_name, res=res, bits=bits, backface=bool(values.get("backface", False)))
+
+
+@dataclass
+class Bias:
+    """The bias parameters as opaque Dr.Jit scalars: new values reuse the compiled kernel."""
+
+    depth_bias: object
+    slope_scaled: object
+    clamp: object
+    constant: object
+    slope: object
+    max_slope: object
+    normal_offset: object
+
+
+def opaque_bias(values: dict) -> Bias:
+    o = lambda k: dr.opaque(mi.Float, float(values[k]))  # noqa: E731
+    return Bias(depth_bias=o("depth_bias"), slope_scaled=o("slope_scaled_depth_bias"),
+                clamp=o("depth_bias_clamp"), constant=o("constant_bias"), slope=o("slope_bias"),
+                max_slope=o("max_slope_bias"), normal_offset=o("normal_offset"))
+
+
+def _to_light(view, p):
+    """Unit direction from ``p`` to the light (the light camera's centre, or −forward)."""
+    f0 = view.proj.faces[0]
+    if f0.ortho:
+        return mi.Vector3f(*[-float(x) for x in f0.R[2]])
+    return dr.normalize(mi.Point3f(*[float(x) for x in f0.origin]) - p)
+
+
+def receiver(frame, view, bias: Bias) -> dict:
+    """Project the G-buffer points into ``view`` with the receiver-side biases of §2.3.
+
+    Returns the dict of :meth:`LightView.lookup` for the normal-offset point, plus ``dt``
+    (biased receiver NDC depth d̃), ``zbias`` (world units subtracted from z), ``active``
+    (valid G-buffer point inside the light camera).
+    """
+    gb = frame.gbuffer
+    p = gb.p
+    ng = mi.Vector3f(gb.ng)
+    first = view.lookup(p)
+    p_off = mi.Point3f(p + ng * (bias.normal_offset * first["texel"]))
+    rec = view.lookup(p_off)
+    c = dr.abs(dr.dot(ng, _to_light(view, p)))
+    tan = dr.safe_sqrt(1.0 - c * c) / dr.maximum(c, 1e-6)
+    zbias = bias.constant + dr.minimum(bias.slope * tan, bias.max_slope)
+    zt = rec["z"] - zbias
+    f0 = view.proj.faces[0]
+    rec["dt"] = view.proj.ndc_depth(zt if f0.ortho else dr.maximum(zt, 1e-12))
+    rec["zbias"] = zbias
+    rec["active"] = gb.valid & rec["inside"]
+    return rec
+
+
+def texel_index(u):
+    """Nearest texel of a continuous texel coordinate (centres at i + 0.5)."""
+    return mi.Int32(dr.floor(u))
+
+
+def rasterizer_bias(view, D, slope, bias: Bias):
+    """Direct3D's depth bias of a texel with stored depth ``D`` and caster slope ``slope``."""
+    if view.bits == 32:
+        # r = 2^(exponent(D) - 23): keep D's exponent bits, subtract 23 from the exponent
+        e = dr.reinterpret_array(mi.UInt32, D) & 0x7F800000
+        r = dr.select(e > (23 << 23), dr.reinterpret_array(mi.Float, e - (23 << 23)), 0.0)
+    else:
+        r = mi.Float(1.0 / (2 ** view.bits - 1))
+    b = bias.depth_bias * r + bias.slope_scaled * slope
+    b = dr.select(bias.clamp > 0, dr.minimum(bias.clamp, b), dr.select(bias.clamp < 0, dr.maximum(bias.clamp, b), b))
+    return b
+
+
+def stored_depth(view, face, ix, iy, bias: Bias):
+    """(biased stored depth D', empty, Bias) of texel (ix, iy) of ``face`` (clamped to the face)."""
+    D = view.fetch("depth", face, ix, iy)
+    S = view.fetch("slope", face, ix, iy)
+    b = rasterizer_bias(view, D, S, bias)
+    return dr.clip(D + b, 0.0, 1.0), D >= 1.0, b
+
+
+def depth_test(view, rec: dict, ix, iy, bias: Bias):
+    """H(z(t_i) − z̃) at one texel: 1.0 lit, 0.0 shadowed (empty texels are lit)."""
+    Db, empty, _ = stored_depth(view, rec["face"], ix, iy, bias)
+    return dr.select(empty | (Db >= rec["dt"]), 1.0, 0.0)
+
+
+def finish(vis, rec: dict):
+    """Visibility 1 outside the light camera and where there is no surface."""
+    return dr.select(rec["active"], vis, 1.0)
+
+
+class ShadowMapTechnique(Technique):
+    """A technique that samples each light's shadow map: resolves the shared parameters, builds
+    the receivers and the AOVs and stats; subclasses implement :meth:`filter`."""
+
+    source = "003_b5589b67cce60746.txt"
+
+    def resolve(self, overrides: dict | None = None) -> dict:
+        values = super().resolve(overrides)
+        check_map_params(values, self.name)
+        return values
+
+    def filter(self, view, rec: dict, bias: Bias, values: dict):  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def render(self, frame, params: dict | None = None) -> ShadowResult:
+        values = self.resolve(params)
+        bias = opaque_bias(values)
+        gb = frame.gbuffer
+        vis, aovs = {}, {}
+        stats = {"shadow_map_texels": 0, "resolution": {}, "depth_bits": {}, "faces": {}}
+        for light in frame.lights:
+            view = view_for(frame, light.name, values)
+            rec = receiver(frame, view, bias)
+            v = finish(self.filter(view, rec, bias, values), rec)
+            _, _, b = stored_depth(view, rec["face"], texel_index(rec["u"]), texel_index(rec["v"]), bias)
+            texel = dr.select(rec["active"], rec["texel"], 0.0)
+            zb = dr.select(rec["active"], rec["zbias"], 0.0)
+            b = dr.select(rec["active"], b, 0.0)
+            dr.eval(v, texel, zb, b)
+            vis[light.name] = v
+            aovs[f"{light.name}.texel"] = gb.to_image(texel)
+            aovs[f"{light.name}.receiver_bias"] = gb.to_image(zb)
+            aovs[f"{light.name}.depth_bias"] = gb.to_image(b)
+            stats["shadow_map_texels"] += view.nfaces * view.res * view.res
+            stats["resolution"][light.name] = view.res
+            stats["depth_bits"][light.name] = view.bits
+            stats["faces"][light.name] = view.nfaces
+        return ShadowResult(visibility=vis, aovs=aovs, stats=stats)
+
+
+@register
+class HardShadowMap(ShadowMapTechnique):
+    """Plain shadow map: one nearest-texel biased depth test per point (§2.1, §2.3)."""
+
+    name = "hard"
+    title = "Shadow map (hard, biased)"
+    summary = ("shadow map with Direct3D depth bias, receiver constant/slope bias, normal offset "
+               "and back-face depth")
+    params = BIAS_PARAMS
+
+    def filter(self, view, rec, bias, values):
+        return depth_test(view, rec, texel_index(rec["u"]), texel_index(rec["v"]), bias)
+
+
+__doc__ += "\n\nParameters of ``hard`` (generated from the declaration):\n\n" + param_table_markdown(HardShadowMap)
