@@ -64,11 +64,12 @@ def reference(scene: str = typer.Argument(..., help="Built-in scene name or path
               seed: int = typer.Option(0, "--seed"),
               target_se: float = typer.Option(0.005, "--target-se", help="Per-pixel standard error to reach."),
               spp: int = typer.Option(256, "--spp", help="Samples per pixel of the mi.render image."),
+              ss: int = typer.Option(1, "--ss", min=1, max=8, help="s×s shading points per pixel (supersampling)."),
               variant: Optional[str] = VariantOpt):
     """Render and store the Mitsuba ground truth of a scene."""
     from .pipeline import parse_resolution, reference as ref
     _init(variant)
-    path, meta = ref(scene, parse_resolution(resolution), force=force, seed=seed, target_se=target_se, spp=spp)
+    path, meta = ref(scene, parse_resolution(resolution), force=force, seed=seed, target_se=target_se, spp=spp, ss=ss)
     typer.echo(f"reference written to {path}: worst standard error {meta['max_std_error']:.4f}, "
                f"{meta['samples']['shadow_rays']:,} shadow rays, {meta['wall_time_s']:.1f} s")
 

@@ -46,22 +46,25 @@ def load_scene(scene: str, resolution=None):
 
 def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0, target_se: float = 0.005,
               strata: int = 8, max_rounds: int = 64, spp: int = 256, base: Path | None = None,
-              progress: bool = True) -> tuple[Path, dict]:
-    """Render and store the ground truth of ``scene``; returns (path, meta)."""
+              progress: bool = True, ss: int = 1) -> tuple[Path, dict]:
+    """Render and store the ground truth of ``scene``; returns (path, meta).
+
+    ``ss``: s×s sub-pixel shading points per pixel (G-buffer supersampling); techniques compared
+    with this reference are evaluated at the same points."""
     from .render.frame import make_frame
     sc = load_scene(scene, resolution)
     dest = store.path_for(sc.name, sc.resolution, base)
     if dest.exists() and not force:
         raise ReferenceError_(f"a reference already exists at {dest}; pass --force to replace it")
     t0 = time.perf_counter()
-    frame = make_frame(sc, seed=seed)
+    frame = make_frame(sc, ss=ss, seed=seed)
     with _progress_bar(None, f"truth {sc.name}", progress) as bar:
         truth = render_truth(frame, k=strata, target_se=target_se, max_rounds=max_rounds, seed=seed, spp=spp,
                              progress=bar.update)
     wall = time.perf_counter() - t0
     info = backend.machine_info()
     meta = {"scene": sc.name, "scene_hash": sc.spec.digest(), "resolution": list(sc.resolution),
-            "mitsuba": info["mitsuba"], "drjit": info["drjit"], "variant": info["variant"], "seed": seed,
+            "mitsuba": info["mitsuba"], "drjit": info["drjit"], "variant": info["variant"], "seed": seed, "supersampling": ss,
             "wall_time_s": wall, "max_std_error": truth.stats["max_std_error"],
             "samples": {"strata": f"{strata}x{strata} per round", "target_se": target_se, "max_rounds": max_rounds,
                         "shadow_rays": truth.stats["shadow_rays"],
@@ -151,12 +154,13 @@ def compare(scene: str, techniques: list[str], sets: list[str] | None = None, ou
             raise
         reference(scene, sc.resolution, base=base, progress=progress)
         truth, meta = store.load(sc.spec, sc.resolution, base)
-    frame = make_frame(sc, seed=int(meta.get("seed", 0)))
+    frame = make_frame(sc, ss=int(meta.get("supersampling", 1)), seed=int(meta.get("seed", 0)))
     results = run_techniques(frame, techniques, overrides)
     run = {"scene": sc.name, "resolution": list(sc.resolution),
            "reference": {"spp": float(np.mean(list(meta["samples"]["mean_rays_per_pixel"].values()))),
                          "rays_per_pixel": meta["samples"]["mean_rays_per_pixel"], "max_std_error": meta["max_std_error"],
                          "shadow_rays": meta["samples"]["shadow_rays"], "seed": meta.get("seed"),
+                         "supersampling": int(meta.get("supersampling", 1)),
                          "path": str(store.path_for(sc.name, sc.resolution, base))},
            "lights": [l.name for l in sc.lights], "techniques": {},
            "images": {"truth": {"shaded": truth.shaded, "vis": {n: lt.V for n, lt in truth.lights.items()}},

@@ -148,3 +148,19 @@ def test_compare_writes_report_and_refuses_bad_input_without_touching_it(tmp_pat
     r = cli("compare", "contact", "--techniques", "pcf", "--set", "pcf.kernel=abc", "--out", str(out))
     assert r.returncode == 2
     assert _digest(out) == before
+
+
+def test_supersampled_reference_and_compare_use_the_same_points(tmp_path):
+    """With --ss 2 the truth and the techniques average the same 4 sub-pixel points; the
+    pixel-centre truth differs from it only where a pixel straddles an edge."""
+    scene = _tiny_scene(tmp_path)
+    base = tmp_path / "refs"
+    path, meta = pipeline.reference(str(scene), base=base, progress=False, ss=2, max_rounds=16)
+    assert meta["supersampling"] == 2
+    run = pipeline.compare(str(scene), ["hard"], base=base)
+    assert run["reference"]["supersampling"] == 2
+    truth, _ = store.load(load_spec(scene), base=base)
+    v = run["images"]["techniques"]["hard"]["vis"]["key"]
+    # sub-pixel averaging gives fractional hard-shadow pixels along edges (1/4 steps)
+    frac = v[(v > 0) & (v < 1)]
+    assert len(frac) > 0 and np.allclose(frac * 4, np.round(frac * 4), atol=1e-5)

@@ -137,8 +137,13 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
     unanimous = valid & ((s_vis == 0) | (s_vis == n))
     bound = np.where(unanimous & ~np.bool_(spec.is_delta), 3.0 / np.maximum(n, 1), 0.0)
     img = gb.to_image
-    return LightTruth(V=img(V), V_se=img(_se(s_v, s_v2)), A=img(A), A_se=img(_se(s_a, s_a2)),
-                      samples=img(n.astype(np.float64)), bound=img(bound), rays=int(rays))
+    s2 = gb.ss * gb.ss  # a pixel's value is the mean of its s² independent sub-pixel estimates
+
+    def se_img(se):
+        return np.sqrt(img(se * se) / s2)
+
+    return LightTruth(V=img(V), V_se=se_img(_se(s_v, s_v2)), A=img(A), A_se=se_img(_se(s_a, s_a2)),
+                      samples=img(n.astype(np.float64)) * s2, bound=img(bound), rays=int(rays))
 
 
 def mitsuba_render(scene, spp: int = 256, passes: int = 4, seed: int = 0):
