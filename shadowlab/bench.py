@@ -9,7 +9,11 @@ Measured (never asserted in tests):
   count every pixel needs (N = n_measured · (worst_se / target)²);
 * per technique: compile time (Dr.Jit codegen + LLVM backend time of kernels not found in
   the cache, from ``dr.kernel_history``) and warm run time (median of repeats, after
-  ``dr.sync_thread()``).
+  ``dr.sync_thread()``);
+* filtered shadow maps (003 ch. 3 tables, as ratios from one run): cost vs kernel size
+  (1×1 … 7×7) and vs shadow-map size (512 … 2048) for PCF, VSM, ESM, EVSM;
+* a 50-value sweep of one continuous parameter per technique: kernels compiled after the first
+  value (0 when parameters are opaque) and kernel-cache hits.
 """
 
 from __future__ import annotations
@@ -125,6 +129,90 @@ def bench_techniques(scene="contact", res=256, repeats=5):
     return {"scene": scene, "resolution": [res, res], "techniques": out}
 
 
+FILTERED = ("pcf", "vsm", "esm", "evsm")
+
+
+def _render_once(t, frame, p):
+    import drjit as dr
+    res = t.render(frame, p)
+    dr.eval(*res.visibility.values())
+    return res
+
+
+def _warm_time(t, frame, p, repeats):
+    """(first run incl. compile, median warm run) of technique ``t`` with params ``p``."""
+    import drjit as dr
+    for l in frame.lights:  # shared input, not the technique's cost
+        frame.light_view(l.name, res=p.get("resolution") or None, bits=p.get("depth_bits") or None,
+                         backface=bool(p.get("backface", False)))
+    _, first = _timed(lambda: _render_once(t, frame, p))
+    _, warm = _timed(lambda: _render_once(t, frame, p), repeats)
+    return first[0], float(np.median(warm))
+
+
+def bench_filters(scene="contact", res=256, kernels=(1, 3, 5, 7), map_sizes=(512, 1024, 2048), repeats=5):
+    """Cost vs kernel size and vs shadow-map size for PCF and the prefiltered maps (003 ch. 3
+    tables): PCF should grow with the kernel's area, prefiltered ones stay nearly flat;
+    prefiltered ones grow with the map size (they filter every texel), PCF not."""
+    from .pipeline import load_scene
+    from .render.frame import make_frame
+    from .techniques import base
+    sc = load_scene(scene, (res, res))
+    frame = make_frame(sc)
+    names = [n for n in FILTERED if n in base.names()]
+    by_kernel, by_map = {}, {}
+    for n in names:
+        t = base.get(n)
+        by_kernel[n] = {}
+        for k in kernels:
+            p = t.resolve({"kernel": k, "resolution": map_sizes[0]})
+            first, warm = _warm_time(t, frame, p, repeats)
+            by_kernel[n][k] = {"first_run_s": first, "warm_run_s": warm}
+        by_map[n] = {}
+        for m in map_sizes:
+            p = t.resolve({"kernel": 5, "resolution": m})
+            first, warm = _warm_time(t, frame, p, repeats)
+            by_map[n][m] = {"first_run_s": first, "warm_run_s": warm}
+    return {"scene": scene, "resolution": [res, res], "kernels": list(kernels), "map_sizes": list(map_sizes),
+            "by_kernel": by_kernel, "by_map_size": by_map}
+
+
+def bench_sweep(scene="contact", res=128, values=50):
+    """A sweep of ``values`` values of one continuous parameter per technique: with opaque
+    parameters only the first value may compile; report the kernel-cache hits."""
+    import drjit as dr
+    from .pipeline import load_scene
+    from .render.frame import make_frame
+    from .techniques import base
+    sc = load_scene(scene, (res, res))
+    frame = make_frame(sc)
+    out = {}
+    for n in base.names():
+        t = base.get(n)
+        cont = [p for p in t.params if p.kind == "float" and p.lo is not None and p.hi is not None and p.hi > p.lo]
+        if not cont:
+            continue
+        prm = next((p for p in cont if p.differentiable), cont[0])
+        lo, hi = float(prm.lo), float(prm.hi)
+        if prm.default is not None and lo <= prm.default <= hi:  # sweep around the default, inside the range
+            span = max(abs(prm.default), (hi - lo) * 0.01)
+            lo, hi = max(lo, prm.default - 0.5 * span), min(hi, prm.default + 0.5 * span)
+        vals = np.linspace(lo, hi, values)
+        _render_once(t, frame, t.resolve({prm.name: vals[0]}))
+        dr.sync_thread()
+        dr.kernel_history()
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        for v in vals[1:]:
+            _render_once(t, frame, t.resolve({prm.name: v}))
+        dr.sync_thread()
+        k = _kernels()
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+        out[n] = {"param": prm.name, "values": values, "range": [float(lo), float(hi)],
+                  "kernels_launched": k["kernels"], "kernels_compiled_after_first": k["compiled"],
+                  "cache_hits": k["from_memory_cache"] + k["from_disk_cache"]}
+    return out
+
+
 def _markdown(res: dict) -> str:
     m = res["machine"]
     tr = res["truth"]
@@ -152,6 +240,30 @@ def _markdown(res: dict) -> str:
                      f"{1e3 * t['first_run_s']:.1f} | {1e3 * t['warm_run_s']:.2f} | {t['kernels_compiled_warm_runs']} |")
     lines += ["", "Compile time: Dr.Jit codegen + LLVM time of JIT kernels served from neither the memory nor the "
               "disk cache (~/.drjit); kernels a previous process compiled are loaded from disk instead."]
+    fl = res.get("filters")
+    if fl and fl["by_kernel"]:
+        ks, ms = fl["kernels"], fl["map_sizes"]
+        lines += ["", f"## Filtered shadow maps: cost vs kernel size ({fl['scene']}, {fl['resolution'][0]}², "
+                      f"{ms[0]}² map; warm run, ms; ratio to 1×1)", "",
+                  "| technique | " + " | ".join(f"{k}×{k}" for k in ks) + f" | {ks[-1]}×{ks[-1]} / 1×1 |",
+                  "|---|" + "---|" * (len(ks) + 1)]
+        for n, d in fl["by_kernel"].items():
+            w = [d[k]["warm_run_s"] * 1e3 for k in ks]
+            lines.append(f"| {n} | " + " | ".join(f"{x:.2f}" for x in w) + f" | {w[-1] / w[0]:.2f}× |")
+        lines += ["", "## Filtered shadow maps: cost vs shadow-map size (5×5 kernel; warm run, ms)", "",
+                  "| technique | " + " | ".join(f"{m}²" for m in ms) + f" | {ms[-1]}² / {ms[0]}² |",
+                  "|---|" + "---|" * (len(ms) + 1)]
+        for n, d in fl["by_map_size"].items():
+            w = [d[m]["warm_run_s"] * 1e3 for m in ms]
+            lines.append(f"| {n} | " + " | ".join(f"{x:.2f}" for x in w) + f" | {w[-1] / w[0]:.2f}× |")
+    sw = res.get("sweep")
+    if sw:
+        lines += ["", "## Parameter sweeps (kernel cache)", "",
+                  "| technique | parameter | values | range | kernels launched | compiled after the first value | cache hits |",
+                  "|---|---|---|---|---|---|---|"]
+        for n, d in sw.items():
+            lines.append(f"| {n} | `{d['param']}` | {d['values']} | [{d['range'][0]:.4g}, {d['range'][1]:.4g}] | "
+                         f"{d['kernels_launched']} | {d['kernels_compiled_after_first']} | {d['cache_hits']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -163,6 +275,9 @@ def run(out: Path, quick: bool = False) -> Path:
            "quick": quick}
     res["truth"] = bench_truth(res=128 if quick else 512, uniform_res=64 if quick else 128)
     res["techniques"] = bench_techniques(res=128 if quick else 512)
+    res["filters"] = bench_filters(res=128 if quick else 256, map_sizes=(256, 512) if quick else (512, 1024, 2048),
+                                   kernels=(1, 3) if quick else (1, 3, 5, 7), repeats=2 if quick else 5)
+    res["sweep"] = bench_sweep(values=5 if quick else 50)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "bench.json", res)
