@@ -1,0 +1,463 @@
+"""Percentage-closer soft shadows (``pcss``), 003_b5589b67cce60746.txt §3.6 (Code A.9).
+
+PCSS is PCF whose filter width follows the estimated penumbra. Per shading point with
+light-space depth z̃ (the receiver's linear depth, ``LightView.lookup()['z']`` of the
+normal-offset point) and the light size w_light = ``light_size``, the three steps of §3.6:
+
+1. *blocker search* (Računanje zaklonjenosti): over the square region of full width
+   ``w_search = (z̃ − z_near)/z̃ · w_light`` (near-plane units, z_near = the light camera's near
+   plane ``Face.near``; "from similar triangles", the cone from the receiver to the light cut
+   by the near plane) take ``blocker_samples`` taps and average the linear depths z
+   (``LightView.z``) of the texels that are closer than the receiver, closer by exactly the
+   biased test of ``hard`` (all of ``BIAS_PARAMS``, §2.3; Code A.9 has a fixed 0.001 instead):
+   a texel is a blocker iff its depth test says "shadowed". No blocker → the point is lit
+   (visibility 1) and the PCF step is skipped for it;
+2. *penumbra estimate* (Procjena širine penumbre), one planar blocker parallel to the light at
+   z_avg: ``w_penumbra = (z̃ − z_avg)/z_avg · w_light`` (world units at the receiver's depth);
+3. *filtering* (Filtriranje): PCF over the square of full width ``w_f = z_near/z̃ · w_penumbra``
+   (near-plane units), ``w_f = max(w_f, w_fmin)`` with w_fmin = ``min_filter`` (texels), sampled
+   by ``pcf_samples`` taps.
+
+Units. The formulas are in light-view units on the near plane; world ↔ texels goes through the
+near plane's size 2·z_near·tan(half fov) for N texels (``Face.scale`` = tan(half fov)), i.e. one
+texel is 2·z_near·tan/N near-plane units. Hence w_search[texels] = w_search·N/(2·z_near·tan), and
+w_f[texels] = (z_near/z̃)·w_penumbra·N/(2·z_near·tan) = w_penumbra/(2·z̃·tan/N): the penumbra's
+world width over one texel's world width at the receiver's depth (``lookup()['texel']``).
+A box filter of full width W over a straight shadow edge is a linear ramp of width W, which is
+exactly the visible fraction of a square light of side w_light behind a straight edge parallel
+to it (the closed form of ``parallel_planes``), so every width is a full width, not a radius
+(Code A.9 multiplies unit-disk offsets by a "radius"). Cube maps (point, sphere lights) use the
+same formulas per face; taps are clamped to the receiver's face (no seam crossing), so penumbrae
+that straddle a cube edge are cut there.
+
+Orthographic light cameras (directional lights) have no light position: the light is a source at
+infinity of angular size ``light_size`` (radians), every depth is a distance along the light's
+direction, and similar triangles with parallel rays give
+
+    w_search   = (z̃ − z_near) · tan(w_light)      (world units = texels · 2·half_extent/N)
+    w_penumbra = (z̃ − z_avg)  · tan(w_light)      (world units)
+    w_f        = w_penumbra                        (no perspective division)
+
+(z_near = the orthographic camera's near plane, which lies outside the scene's bounding sphere).
+
+``light_size`` mapping. ``light_size`` is in world units (radians for directional lights);
+0, the default, takes each light's size from the scene: ``LightSpec.physical_size`` times a
+per-kind factor, the side of the square with the light's area (for directional lights, with its
+angular area). PCSS models a square light (a square filter), and a square of the same area has
+nearly the same edge ramp as the light:
+
+| light kind | ``LightSpec.physical_size`` | × | ``light_size`` from the scene |
+|---|---|---|---|
+| rect w × h | √(w·h) | 1 | √(w·h) (a square light exactly) |
+| disk, spot, radius r | 2r (diameter) | √π/2 | √π·r ≈ 1.772 r |
+| sphere, point, radius r | 2r (its silhouette is a disk of radius r) | √π/2 | √π·r |
+| directional, angular diameter θ | θ (radians) | √π/2 | √π/2·θ ≈ 0.886 θ (radians) |
+
+For a disk the equal-area square's 10–90 % edge ramp is 0.8·√π·r = 1.418 r against the disk's
+1.374 r (a square of side 2r, the diameter, would give 1.6 r). For w ≠ h the true ramp is w or h
+depending on the edge's direction; √(w·h) is their geometric mean. Delta lights (r = 0, θ = 0)
+get 0: a hard shadow widened only by ``min_filter``. An explicit value applies to every light.
+
+Sampling patterns (fixed, part of the technique's definition; uploaded as data, so each count
+compiles its own kernel once and nothing else does):
+
+* blocker search (:data:`SEARCH_SETS`): 16, 25 or 32 Poisson-disk points in the unit square,
+  Mitchell's best candidate (64 candidates per point from the counter-based splitmix64 stream of
+  :mod:`shadowlab.techniques.pcf`, seed :data:`SEARCH_SEED`), then centred (mean 0) and scaled
+  back into [−½, ½]² if centring moved a point out; offsets in units of w_search. 16–25 is the
+  source's "usually enough" and Code A.9 uses 16; the default 32 is the declared maximum (the
+  region is wide, because blockers at the near plane would be seen through all of it: 75 texels
+  on ``parallel_planes``, 110–140 on ``contact`` for the 1 m lights);
+* PCF (:func:`pcf_pattern`): a centred Hammersley set, x_k = (k + ½)/n, y_k = φ₂(k) + ½/n (φ₂ the
+  base-2 radical inverse), minus ½: for n a power of two every row and every column of an n×n
+  grid holds one tap, so a shadow edge along either axis of the map gets n levels instead of
+  √n; n = 1 is one tap at the centre (hardware 2×2 PCF), weights 1/n.
+
+Every tap (search and PCF) is a *bilinear* tap: the four texels around it are depth-tested
+(nearest-texel biased tests, exactly ``hard``'s) and weighted by the bilinear fractions, like
+hardware 2×2 PCF; in the search, a blocker's weight also weights its depth in z_avg (the
+"blocker count" is the sum of those weights, 0 … ``blocker_samples``).
+
+``receiver_plane`` (not in the source; Isidoro 2006, "receiver plane depth bias", as in NVIDIA's
+PCSS samples): each tap compares against the depth of the receiver's tangent plane (from the
+G-buffer's geometric normal) at that tap instead of z̃ at the centre. NDC depth is linear in the
+shadow-map coordinates over a plane, so the tap's reference is d̃ + ∂d/∂u·Δu + ∂d/∂v·Δv, exact
+for planar receivers. Without it a receiver that is tilted in the light's view finds itself as a
+"blocker" in the wide search region and in wide PCF footprints (PCSS acne): on ``contact`` 30 % of
+the truly lit pixels come out below 0.9 (1.5 % with it), and the RMSE of the shaded image is 0.099
+(0.028 with it; ``hard`` 0.058, ``pcf`` 0.046); ``cornell`` 0.0104 → 0.0057, ``two_lights``
+0.037 → 0.019, ``analytic_sphere`` 0.018 → 0.013, ``parallel_planes`` unchanged (its receivers
+face the light). Default on, a deliberate departure from 003 §3.6 (which compares with z̃): with
+the source's comparison PCSS is worse than the plain shadow map on every tilted receiver, which
+is a property of that comparison rather than of PCSS; ``--set pcss.receiver_plane=false``
+gives the source's algorithm.
+
+Differentiability. Through the bilinear weights the visibility is a continuous, piecewise smooth
+function of the tap positions, hence of ``light_size``: ``light_size`` is ``differentiable``.
+Pass it as a Dr.Jit ``mi.Float`` of width 1 with gradients enabled (the convention of the
+prefiltered techniques): it is used as is, in world units (radians for directional lights; the
+0 = "from the scene" rule does not apply; start from :func:`scene_light_size`), and
+``dr.backward`` of a loss on the visibility reaches it through both the search region and the
+filter width (``tests/test_pcss.py`` compares it with central differences). As a plain number it
+enters through ``dr.opaque``. ``min_filter`` (a ``max``) and the biases (steps) are not
+differentiable; ``blocker_samples``, ``pcf_samples`` and ``receiver_plane`` are structural (one
+kernel each).
+
+Measured on ``parallel_planes`` (128², 1024² fp32 map, committed reference, defaults;
+``tests/test_pcss.py``): penumbra RMSE of the shaded image 0.0092 (``hard`` 0.397, ``pcf``
+default 3×3 0.341), of the visibility 0.0067; 10–90 % penumbra width on the floor 0.801 world
+units against the prediction 0.8·w_penumbra = 0.800 (truth fit 0.78, closed form 0.8); with
+``light_size`` 0.5 / 1 / 1.5 the widths are 0.400 / 0.801 / 1.200 and the visibility is within
+RMSE ≤ 0.001 of the closed form for that light size. With ``light_size`` → 0 the result equals
+``hard`` at all but 0.8 % of the pixels (the one-texel bilinear ramp of ``min_filter``); with
+``pcf_samples`` 1 and ``min_filter`` 0 on every pixel.
+
+AOVs per light: ``<light>.penumbra_width`` (w_penumbra, world units at the receiver),
+``<light>.penumbra_texels`` (the same in shadow-map texels, before ``min_filter``),
+``<light>.filter_texels`` (w_f used, texels), ``<light>.blocker_depth`` (z_avg, light-space
+depth; 0 where no blocker), ``<light>.blocker_count`` (weighted count of blocker taps),
+``<light>.search_texels`` (w_search, texels), plus ``hard``'s ``texel``, ``receiver_bias`` and
+``depth_bias``; all 0 where the point is inactive (no surface, outside the light camera). Stats:
+``samples_per_pixel`` (mean taps per active point: the search's, plus the PCF's where a
+blocker was found; each tap reads 2×2 texels), per light and pooled as ``all``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..errors import InputError
+from .base import Param, ShadowResult, param_table_markdown, register
+from .pcf import _uniform
+from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, finish, opaque_bias, receiver, stored_depth, texel_index,
+                         view_for)
+
+SOURCE = "003 §3.6"
+BLOCKER_COUNTS = (16, 25, 32)
+PCF_COUNTS = (1, 16, 32, 64)
+
+# ----------------------------------------------------------------------------------------------
+# sampling patterns
+
+#: seed of the blocker-search point sets (fixed: the sets are part of the technique's definition)
+SEARCH_SEED = 0x5EED_036
+
+
+def best_candidate(count: int, seed: int = SEARCH_SEED, candidates: int = 64) -> np.ndarray:
+    """``count`` well-spread points of the unit square as offsets in [−½, ½]²: Mitchell's best
+    candidate (each new point is, of ``candidates`` uniform candidates, the one farthest from the
+    points so far), then centred (mean 0, so the search is not shifted) and scaled back into
+    [−½, ½]² if centring moved a point out. Deterministic (splitmix64 counter stream)."""
+    u = _uniform(seed, 0, 2 * candidates * count).reshape(count, candidates, 2)
+    pts = [u[0, 0]]
+    for k in range(1, count):
+        c = u[k]
+        d = np.min(((c[:, None, :] - np.asarray(pts)[None]) ** 2).sum(-1), axis=1)
+        pts.append(c[int(np.argmax(d))])
+    p = np.asarray(pts) - 0.5
+    p = p - p.mean(0)
+    return p * min(1.0, 0.5 / float(np.max(np.abs(p))))
+
+
+#: blocker-search offsets (units of w_search) by count
+SEARCH_SETS = {n: best_candidate(n) for n in BLOCKER_COUNTS}
+
+
+def radical_inverse2(k: int) -> float:
+    """Base-2 radical inverse φ₂(k): the bits of k mirrored about the binary point."""
+    r, f = 0.0, 0.5
+    while k:
+        r += f * (k & 1)
+        k >>= 1
+        f *= 0.5
+    return r
+
+
+def pcf_pattern(n: int) -> np.ndarray:
+    """PCF offsets (units of w_f) in [−½, ½)²: the centred Hammersley set
+    ((k + ½)/n, φ₂(k) + ½/n) − ½, k = 0 … n − 1."""
+    return np.array([((k + 0.5) / n - 0.5, (radical_inverse2(k) + 0.5 / n) % 1.0 - 0.5) for k in range(n)])
+
+
+def _pattern_arrays(offsets: np.ndarray):
+    """A tap pattern as two evaluated Dr.Jit Floats (x and y), read by index inside the loops."""
+    x, y = (mi.Float(np.ascontiguousarray(offsets[:, i], np.float32)) for i in range(2))
+    dr.make_opaque(x, y)
+    return x, y
+
+
+# ----------------------------------------------------------------------------------------------
+# light size
+
+SIZE_FACTOR = {"rect": 1.0, "disk": math.sqrt(math.pi) / 2, "spot": math.sqrt(math.pi) / 2,
+               "sphere": math.sqrt(math.pi) / 2, "point": math.sqrt(math.pi) / 2,
+               "directional": math.sqrt(math.pi) / 2}
+
+
+def scene_light_size(light) -> float:
+    """The ``light_size`` a light gets when the parameter is 0: ``physical_size`` × the factor
+    of its kind (the module docstring's table: the side of the equal-area square)."""
+    return SIZE_FACTOR[light.kind] * light.physical_size
+
+
+PCSS_PARAMS = (
+    Param("light_size", 0.0, "float", 0.0, 100.0, "world units (radians: directional)", True, source=SOURCE,
+          doc="w_light: side of the square light PCSS models; 0 = from the scene, physical size × factor: "
+              "rect √(w·h); disk/sphere/spot/point √π·r; directional √π/2·angular diameter (equal-area square)"),
+    Param("blocker_samples", 32, "choice", units="taps", choices=BLOCKER_COUNTS, source=SOURCE,
+          doc="taps of the blocker search over the w_search square (fixed best-candidate Poisson set; bilinear "
+              "taps; 16–25 in the source)"),
+    Param("pcf_samples", 64, "choice", units="taps", choices=PCF_COUNTS, source=SOURCE,
+          doc="taps of the PCF step over the w_f square (centred Hammersley set, box weights; bilinear taps; "
+              "1 = one 2×2 bilinear tap)"),
+    Param("min_filter", 1.0, "float", 0.0, 64.0, "texels", False, source=SOURCE,
+          doc="w_fmin: the PCF footprint is at least this wide (full width), w_f = max(w_f, w_fmin)"),
+    Param("receiver_plane", True, "bool", source="Isidoro 2006",
+          doc="receiver plane depth bias: every tap compares against the receiver's tangent plane at that "
+              "tap (not in the source; removes self-blocking of tilted receivers)"),
+)
+
+
+# ----------------------------------------------------------------------------------------------
+# taps
+
+def _bilinear_corners(u, v):
+    """The four texels around a continuous texel coordinate and their bilinear weights."""
+    x, y = u - 0.5, v - 0.5
+    x0, y0 = dr.floor(x), dr.floor(y)
+    fx, fy = x - x0, y - y0
+    ix, iy = mi.Int32(dr.detach(x0)), mi.Int32(dr.detach(y0))
+    return ((ix, iy, (1.0 - fx) * (1.0 - fy)), (ix + 1, iy, fx * (1.0 - fy)),
+            (ix, iy + 1, (1.0 - fx) * fy), (ix + 1, iy + 1, fx * fy))
+
+
+def _blocked(view, face, ix, iy, dt, bias):
+    """``hard``'s biased test of texel (ix, iy) against the reference NDC depth ``dt``:
+    True where the texel is a blocker (shadowed)."""
+    Db, empty, _ = stored_depth(view, face, ix, iy, bias)
+    return ~empty & (Db < dt)
+
+
+def _tap(view, rec, g, u, v, du, dv, bias):
+    """One bilinear tap at (u + du, v + dv): (weighted shadowed fraction, weighted blocker z)."""
+    dt = rec["dt"] if g is None else rec["dt"] + g[0] * du + g[1] * dv
+    n = z = None
+    for ix, iy, w in _bilinear_corners(u + du, v + dv):
+        b = dr.select(_blocked(view, rec["face"], ix, iy, dt, bias), w, 0.0)
+        bz = b * view.fetch("z", rec["face"], ix, iy)
+        n = b if n is None else n + b
+        z = bz if z is None else z + bz
+    return n, z
+
+
+def _search_loop(view, rec, g, bias, w, px, py, n: int):
+    """Σ over the ``n`` search taps of (weighted blocker count, weighted blocker depth): a
+    symbolic loop (an unrolled one takes long to compile)."""
+    u, v = rec["u"], rec["v"]
+
+    def body(k, cnt, zsum):
+        c, z = _tap(view, rec, g, u, v, dr.gather(mi.Float, px, k) * w, dr.gather(mi.Float, py, k) * w, bias)
+        return k + 1, cnt + c, zsum + z
+
+    m = dr.width(u)
+    _, cnt, zsum = dr.while_loop((dr.zeros(mi.UInt32, m), dr.zeros(mi.Float, m), dr.zeros(mi.Float, m)),
+                                 lambda k, c, z: k < n, body, labels=("k", "count", "zsum"),
+                                 label="pcss_blocker_search", max_iterations=n)
+    return cnt, zsum
+
+
+def _pcf_loop(view, rec, g, bias, w, px, py, n: int, run):
+    """Σ over the ``n`` PCF taps of the shadowed fraction of each bilinear tap, only where
+    ``run`` (a blocker was found): a symbolic loop."""
+    u, v = rec["u"], rec["v"]
+
+    def body(k, dark):
+        c, _ = _tap(view, rec, g, u, v, dr.gather(mi.Float, px, k) * w, dr.gather(mi.Float, py, k) * w, bias)
+        return k + 1, dark + c
+
+    m = dr.width(u)
+    _, dark = dr.while_loop((dr.zeros(mi.UInt32, m), dr.zeros(mi.Float, m)), lambda k, d: run & (k < n), body,
+                            labels=("k", "dark"), label="pcss_pcf", max_iterations=n)
+    return dark
+
+
+def _light_space(view, rec, vec):
+    """World vector ``vec`` in the light space of each receiver's face (rows right, up, forward)."""
+    faces = view.proj.faces
+    if view.proj.cube:
+        Rf = mi.Float(np.asarray([f.R for f in faces], np.float32).ravel())
+        rows = [mi.Vector3f(*[dr.gather(mi.Float, Rf, rec["face"] * 9 + 3 * r + c) for c in range(3)])
+                for r in range(3)]
+    else:
+        rows = [mi.Vector3f(*faces[0].R[r]) for r in range(3)]
+    return [dr.dot(vec, r) for r in rows]
+
+
+def receiver_plane_gradient(view, rec, ng):
+    """(∂d/∂u, ∂d/∂v): NDC depth per texel of the receiver's tangent plane (normal ``ng``) in the
+    shadow map. Over a plane n·X = c (light space), 1/z (perspective) or z (orthographic) is
+    linear in the NDC coordinates x' = 2u/N − 1, y' = 1 − 2v/N, so d is linear in (u, v):
+
+        perspective  ∂d/∂x' = −f·n_near/(f − n_near) · n_x·tan/c,  c = n·q
+        orthographic ∂d/∂x' = −n_x·half_extent/(n_z·(f − n_near))
+    (y' likewise with n_y), ∂/∂u = 2/N·∂/∂x', ∂/∂v = −2/N·∂/∂y'. Grazing planes (c or n_z → 0)
+    are kept finite (|denominator| ≥ 1e-6·scale)."""
+    f0 = view.proj.faces[0]
+    N, near, far, s = view.res, f0.near, f0.far, f0.scale
+    nx, ny, nz = _light_space(view, rec, mi.Vector3f(ng))
+    x = 2.0 * rec["u"] / N - 1.0
+    y = 1.0 - 2.0 * rec["v"] / N
+
+    def safe(c, eps):
+        return dr.select(dr.abs(c) < eps, dr.select(c < 0, -eps, eps), c)
+
+    if f0.ortho:
+        den = safe(nz, 1e-6) * (far - near)
+        gx, gy = -nx * s / den, -ny * s / den
+    else:
+        z = rec["z"]
+        c = safe(nx * x * s * z + ny * y * s * z + nz * z, 1e-6 * dr.maximum(dr.abs(z), near))
+        k = -far * near / (far - near) * s
+        gx, gy = k * nx / c, k * ny / c
+    return gx * (2.0 / N), gy * (-2.0 / N)
+
+
+# ----------------------------------------------------------------------------------------------
+# the technique
+
+@register
+class PCSS(ShadowMapTechnique):
+    """Percentage-closer soft shadows: blocker search, penumbra estimate, variable-width PCF."""
+
+    name = "pcss"
+    title = "PCSS (percentage-closer soft shadows)"
+    summary = ("blocker search, penumbra width from a planar blocker parallel to the light, then PCF of that "
+               "width; bilinear taps, so the light size is differentiable")
+    params = PCSS_PARAMS + BIAS_PARAMS
+
+    def resolve(self, overrides: dict | None = None) -> dict:
+        """As every technique, but a Dr.Jit ``light_size`` (width 1) is kept as is so that
+        gradients flow through it; other parameters must be plain values."""
+        overrides = dict(overrides or {})
+        jit = None
+        for k, v in list(overrides.items()):
+            if isinstance(v, dr.ArrayBase):
+                p = self.param(k)
+                if not p.differentiable:
+                    raise InputError(f"{self.name}.{k}: only differentiable parameters (light_size) may be "
+                                     f"Dr.Jit arrays; pass a number")
+                if dr.width(v) != 1:
+                    raise InputError(f"{self.name}.{k}: a Dr.Jit parameter must hold one value, got {dr.width(v)}")
+                val = float(dr.detach(v)[0])
+                p.parse(val, self.name)
+                overrides[k] = val
+                jit = v
+        values = super().resolve(overrides)
+        if jit is not None:
+            values["light_size"] = jit
+        return values
+
+    def light_size(self, light, values: dict):
+        """``light_size`` for ``light`` as a Dr.Jit Float: a Dr.Jit input as is, else opaque
+        (0 = :func:`scene_light_size`)."""
+        ls = values["light_size"]
+        if isinstance(ls, dr.ArrayBase):
+            val, out = float(dr.detach(ls)[0]), ls
+        else:
+            val = float(ls) if float(ls) > 0 else scene_light_size(light)
+            out = dr.opaque(mi.Float, val)
+        if light.kind == "directional" and val >= 0.5 * math.pi:
+            raise InputError(f"pcss.light_size={val:g} rad for directional light {light.name!r}: an angular size "
+                             f"must be below π/2 (the sun's disk is 0.0093 rad)")
+        return out
+
+    def pcss(self, frame, view, rec, bias, values, w_light):
+        """The three steps of §3.6 for the receivers ``rec``; returns (visibility, dict of AOVs)."""
+        f0 = view.proj.faces[0]
+        N, near = view.res, f0.near
+        zr = rec["z"]
+        for name in ("depth", "slope", "z"):  # upload before the symbolic loops record
+            view.dr(name)
+        g = receiver_plane_gradient(view, rec, frame.gbuffer.ng) if values["receiver_plane"] else None
+        if f0.ortho:
+            tan = dr.tan(w_light)
+            texel = 2.0 * f0.scale / N                                              # world units per texel
+            w_search = dr.maximum(zr - near, 0.0) * tan * (1.0 / texel)             # texels
+        else:
+            zs = dr.maximum(zr, near)
+            w_search = (zs - near) / zs * w_light * (N / (2.0 * near * f0.scale))  # texels
+        # 1. blocker search
+        nb = int(values["blocker_samples"])
+        px, py = _pattern_arrays(SEARCH_SETS[nb])
+        cnt, zsum = _search_loop(view, rec, g, bias, w_search, px, py, nb)
+        found = rec["active"] & (cnt > 0.0)
+        z_avg = dr.select(found, zsum / dr.maximum(cnt, 1e-20), zr)
+        # 2. penumbra width (world units at the receiver), 3. filter width (texels)
+        if f0.ortho:
+            w_pen = dr.maximum(zr - z_avg, 0.0) * tan
+            w_pen_tex = w_pen * (1.0 / texel)
+        else:
+            w_pen = dr.maximum(zr - z_avg, 0.0) / dr.maximum(z_avg, 1e-6) * w_light
+            w_pen_tex = w_pen / dr.maximum(rec["texel"], 1e-12)
+        w_f = dr.maximum(w_pen_tex, dr.opaque(mi.Float, float(values["min_filter"])))
+        npcf = int(values["pcf_samples"])
+        px, py = _pattern_arrays(pcf_pattern(npcf))
+        dark = _pcf_loop(view, rec, g, bias, w_f, px, py, npcf, found)
+        vis = dr.select(found, dr.clip(1.0 - dark * (1.0 / npcf), 0.0, 1.0), 1.0)
+        act = rec["active"]
+        aovs = {"penumbra_width": dr.select(found, w_pen, 0.0), "penumbra_texels": dr.select(found, w_pen_tex, 0.0),
+                "filter_texels": dr.select(found, w_f, 0.0), "blocker_depth": dr.select(found, z_avg, 0.0),
+                "blocker_count": dr.select(act, cnt, 0.0), "search_texels": dr.select(act, w_search, 0.0)}
+        return vis, aovs
+
+    def filter(self, view, rec, bias, values):  # pragma: no cover - render() does the work
+        raise NotImplementedError("pcss renders through PCSS.render (it needs the frame's normals)")
+
+    def render(self, frame, params: dict | None = None) -> ShadowResult:
+        values = self.resolve(params)
+        bias = opaque_bias(values)
+        gb = frame.gbuffer
+        nb, npcf = int(values["blocker_samples"]), int(values["pcf_samples"])
+        vis, aovs = {}, {}
+        stats = {"shadow_map_texels": 0, "resolution": {}, "depth_bits": {}, "faces": {}, "light_size": {},
+                 "blocker_samples": nb, "pcf_samples": npcf, "texels_per_sample": 4,
+                 "receiver_plane": bool(values["receiver_plane"]), "samples_per_pixel": {}}
+        taps, points = 0.0, 0
+        for light in frame.lights:
+            view = view_for(frame, light.name, values)
+            rec = receiver(frame, view, bias)
+            w_light = self.light_size(light, values)
+            v, extra = self.pcss(frame, view, rec, bias, values, w_light)
+            v = finish(v, rec)
+            _, _, b = stored_depth(view, rec["face"], texel_index(rec["u"]), texel_index(rec["v"]), bias)
+            texel = dr.select(rec["active"], rec["texel"], 0.0)
+            zb = dr.select(rec["active"], rec["zbias"], 0.0)
+            b = dr.select(rec["active"], b, 0.0)
+            extra = {k: dr.detach(a) for k, a in extra.items()}
+            dr.eval(v, texel, zb, b, *extra.values())
+            vis[light.name] = v
+            aovs[f"{light.name}.texel"] = gb.to_image(texel)
+            aovs[f"{light.name}.receiver_bias"] = gb.to_image(zb)
+            aovs[f"{light.name}.depth_bias"] = gb.to_image(b)
+            for k, a in extra.items():
+                aovs[f"{light.name}.{k}"] = gb.to_image(a)
+            active = rec["active"].numpy()
+            found = extra["blocker_count"].numpy() > 0
+            n_act = int(active.sum())
+            t = float(nb * n_act + npcf * int((found & active).sum()))
+            stats["samples_per_pixel"][light.name] = t / n_act if n_act else 0.0
+            taps, points = taps + t, points + n_act
+            stats["shadow_map_texels"] += view.nfaces * view.res * view.res
+            stats["resolution"][light.name] = view.res
+            stats["depth_bits"][light.name] = view.bits
+            stats["faces"][light.name] = view.nfaces
+            stats["light_size"][light.name] = float(dr.detach(w_light)[0])
+        stats["samples_per_pixel"]["all"] = taps / points if points else 0.0
+        return ShadowResult(visibility=vis, aovs=aovs, stats=stats)
+
+
+__doc__ += "\n\nParameters of ``pcss`` (generated from the declaration):\n\n" + param_table_markdown(PCSS)
