@@ -134,14 +134,17 @@ def register(cls):
 
 
 def names() -> list[str]:
+    """Registered techniques, family by family in :data:`_ORDER` (then by module name), each
+    family's techniques in the order its module declares them, whatever was imported first."""
     _load_all()
-    return list(_REGISTRY)
+    mods = sorted({t.__class__.__module__.rsplit(".", 1)[-1] for t in _REGISTRY.values()}, key=_module_rank)
+    return [n for m in mods for n, t in _REGISTRY.items() if t.__class__.__module__.rsplit(".", 1)[-1] == m]
 
 
 def get(name: str) -> Technique:
     _load_all()
     if name not in _REGISTRY:
-        raise InputError(f"unknown technique {name!r}; registered techniques: {', '.join(_REGISTRY)}")
+        raise InputError(f"unknown technique {name!r}; registered techniques: {', '.join(names())}")
     return _REGISTRY[name]
 
 
@@ -165,6 +168,10 @@ def parse_sets(sets: list[str], techniques: list[str]) -> dict:
 _ORDER = ("shadow_map", "pcf", "pcss", "vsm", "esm", "evsm", "msm")
 
 
+def _module_rank(name: str):
+    return (_ORDER.index(name) if name in _ORDER else len(_ORDER), name)
+
+
 def _load_all():
     """Import every technique module of this package: importing a module registers its
     techniques, so a new family needs no edit here."""
@@ -173,7 +180,7 @@ def _load_all():
     from pathlib import Path
     mods = [m.name for m in pkgutil.iter_modules([str(Path(__file__).parent)]) if not m.name.startswith("_")
             and m.name != "base"]
-    mods.sort(key=lambda n: (_ORDER.index(n) if n in _ORDER else len(_ORDER), n))
+    mods.sort(key=_module_rank)
     for m in mods:
         importlib.import_module(f"{__package__}.{m}")
 

@@ -86,6 +86,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ._random import uniform as _uniform
 from .base import Param, param_table_markdown, register
 from .shadow_map import BIAS_PARAMS, ShadowMapTechnique, depth_test, texel_index
 
@@ -97,21 +98,6 @@ SRC = "003 §3.2"
 
 #: the seed of the Poisson-disk sets (fixed: the sets are part of the technique's definition)
 POISSON_SEED = 0x5EED_003
-
-
-def _splitmix64(seed: int, start: int, count: int) -> np.ndarray:
-    """``count`` outputs of splitmix64 from counter ``start`` (vectorised, numpy-version proof)."""
-    i = np.arange(start + 1, start + count + 1, dtype=np.uint64)
-    with np.errstate(over="ignore"):
-        z = np.uint64(seed) + i * np.uint64(0x9E3779B97F4A7C15)
-        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-        z = z ^ (z >> np.uint64(31))
-    return z
-
-
-def _uniform(seed: int, start: int, count: int) -> np.ndarray:
-    return (_splitmix64(seed, start, count) >> np.uint64(11)).astype(np.float64) * 2.0 ** -53
 
 
 def poisson_disk(count: int, seed: int = POISSON_SEED, darts: int = 4096) -> tuple[np.ndarray, float]:

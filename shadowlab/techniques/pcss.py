@@ -63,7 +63,7 @@ compiles its own kernel once and nothing else does):
 
 * blocker search (:data:`SEARCH_SETS`): 16, 25 or 32 Poisson-disk points in the unit square,
   Mitchell's best candidate (64 candidates per point from the counter-based splitmix64 stream of
-  :mod:`shadowlab.techniques.pcf`, seed :data:`SEARCH_SEED`), then centred (mean 0) and scaled
+  :mod:`shadowlab.techniques._random`, seed :data:`SEARCH_SEED`), then centred (mean 0) and scaled
   back into [−½, ½]² if centring moved a point out; offsets in units of w_search. 16–25 is the
   source's "usually enough" and Code A.9 uses 16; the default 32 is the declared maximum (the
   region is wide, because blockers at the near plane would be seen through all of it: 75 texels
@@ -131,8 +131,8 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import InputError
+from ._random import uniform as _uniform
 from .base import Param, ShadowResult, param_table_markdown, register
-from .pcf import _uniform
 from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, finish, opaque_bias, receiver, stored_depth, texel_index,
                          view_for)
 
