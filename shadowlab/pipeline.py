@@ -72,6 +72,7 @@ def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0
                                                 for n, l in truth.lights.items()},
                         "mitsuba_spp": spp},
             "lights": [l.name for l in sc.lights], "stats": truth.stats, "machine": info}
+    meta.update(sc.mitsuba_notes())  # e.g. alpha-tested casters that mi.render's direct integrator ignores
     path = store.save(truth, meta, dest, force=force)
     return path, meta
 

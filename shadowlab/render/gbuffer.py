@@ -4,6 +4,10 @@ Camera rays go through pixel centres (or the centres of an s×s grid of sub-pixe
 ``sensor.sample_ray`` so the G-buffer matches the ground-truth camera exactly. Point ``k`` of
 the flat arrays is pixel ``(x, y) = ((k // s²) % W, (k // s²) // W)``, sub-pixel ``k % s²``:
 reshaping any flat array to (H, W, s²) and averaging the last axis gives pixel values.
+
+Alpha-tested casters (003_b5589b67cce60746.txt §2.4): in a scene with ``scene.has_alpha``
+camera rays continue through transparent texels (alpha < cutoff), so a pixel shows what lies
+behind a leaf card's holes; other scenes cast one ``ray_intersect`` as before.
 """
 
 from __future__ import annotations
@@ -78,6 +82,8 @@ def gbuffer(scene, ss: int = 1) -> GBuffer:
     film_uv = mi.Point2f(uv[:, 0].astype(np.float32), uv[:, 1].astype(np.float32))
     ray, _ = scene.sensor.sample_ray(0.0, 0.5, film_uv, mi.Point2f(0.5))
     si = scene.mi_scene.ray_intersect(ray)
+    if getattr(scene, "has_alpha", False):
+        si = _through_alpha(scene.mi_scene, si, ray)
     hit = si.is_valid()
     is_emitter = si.shape.is_emitter() if hasattr(si.shape, "is_emitter") else mi.Bool(False)
     valid = hit & ~is_emitter
@@ -106,3 +112,26 @@ def gbuffer(scene, ss: int = 1) -> GBuffer:
     return GBuffer(width=W, height=H, ss=ss, si=si, rays=ray, p=si.p, n=n, ng=ng, valid=valid,
                    view_depth=vd, z_depth=zz, albedo=albedo, mask=mask,
                    shape_id=sid.numpy().reshape(shp).astype(np.int32))
+
+
+MAX_ALPHA_LAYERS = 64  # transparent texels a camera ray may pass before it stops (then: a miss)
+
+
+@__import__("drjit").syntax
+def _through_alpha(mi_scene, si, ray):
+    """Continue camera rays through transparent texels of alpha-tested shapes (a symbolic loop,
+    only for scenes that have them). ``si.t`` stays the distance from the camera ray's origin; a
+    ray still on a transparent texel after MAX_ALPHA_LAYERS surfaces counts as a miss."""
+    import drjit as dr
+    import mitsuba as mi
+    from ..scene.build import transparent
+    r = mi.Ray3f(ray)
+    i = mi.UInt32(0)
+    through = transparent(si)
+    while dr.hint(through & (i < MAX_ALPHA_LAYERS), max_iterations=-1):
+        r = si.spawn_ray(r.d)
+        si = mi_scene.ray_intersect(r)
+        through = transparent(si)
+        i += 1
+    si.t = dr.select(through, dr.inf, dr.select(si.is_valid(), dr.norm(si.p - ray.o), si.t))
+    return si

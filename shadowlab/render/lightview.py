@@ -19,6 +19,10 @@ counts from the top (y = +1). Stored per texel, like a GPU depth buffer:
 * ``z``: the light-space z that the quantised d decodes to (linear depth for PCSS & co.);
 * ``slope``: max(|∂d/∂x|, |∂d/∂y|) per texel of the caster's plane, for Direct3D's
   SlopeScaledDepthBias (computed from the hit's geometric normal, not by differencing).
+
+Alpha-tested casters (003 §2.4, "Transparentni objekti"): a texel ray passes through texels of
+an ``alpha_texture`` whose alpha is below the shape's ``alpha_cutoff`` (the depth pass's
+``discard``), so the map stores the next surface behind a leaf card's holes.
 """
 
 from __future__ import annotations
@@ -269,7 +273,7 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     own = scene.light_shapes.get(light.name)
     shapes = scene.mi_scene.shapes_dr()
     own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
-    si = _cast(scene.mi_scene, ray, backface, own_ptr)
+    si = _cast(scene.mi_scene, ray, backface, own_ptr, bool(getattr(scene, "has_alpha", False)))
     hit = si.is_valid()
     # light-space z and the caster's plane in light space
     face_idx = np.repeat(np.arange(F), N * N)
@@ -301,31 +305,38 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
                      hit=h.reshape(shp))
 
 
-def _cast(mi_scene, ray, backface: bool, own_ptr):
-    """First hit along ``ray`` that is not the light's own shape (and, with ``backface``, that
-    faces away from the ray origin). A symbolic loop: at most 16 surfaces are skipped."""
-    import drjit as dr
-    import mitsuba as mi
+MAX_SKIPS = 16         # surfaces a texel ray may skip (the light's own shape, back faces)
+MAX_SKIPS_ALPHA = 64   # … in a scene with alpha-tested casters (foliage stacks many cards)
 
-    return _cast_loop(mi_scene, ray, backface, own_ptr)
+
+def _cast(mi_scene, ray, backface: bool, own_ptr, alpha: bool = False):
+    """First hit along ``ray`` that is not the light's own shape, (with ``backface``) that faces
+    away from the ray origin and (``alpha``: the scene has alpha-tested casters) that is not a
+    transparent texel. A symbolic loop: at most MAX_SKIPS (MAX_SKIPS_ALPHA) surfaces are
+    skipped."""
+    return _cast_loop(mi_scene, ray, backface, own_ptr, alpha)
 
 
 @__import__("drjit").syntax
-def _cast_loop(mi_scene, ray, backface, own_ptr):
+def _cast_loop(mi_scene, ray, backface, own_ptr, alpha=False):
     import drjit as dr
     import mitsuba as mi
+    max_skips = MAX_SKIPS_ALPHA if alpha else MAX_SKIPS
     si = mi_scene.ray_intersect(ray)
     i = mi.UInt32(0)
-    skip = _skip(si, ray, backface, own_ptr)
-    while dr.hint(skip & (i < 16), max_iterations=-1):
+    skip = _skip(si, ray, backface, own_ptr, alpha)
+    while dr.hint(skip & (i < max_skips), max_iterations=-1):
         ray = si.spawn_ray(ray.d)
         si = mi_scene.ray_intersect(ray)
-        skip = _skip(si, ray, backface, own_ptr)
+        skip = _skip(si, ray, backface, own_ptr, alpha)
         i += 1
     return si
 
 
-def _skip(si, ray, backface, own_ptr):
+def _skip(si, ray, backface, own_ptr, alpha=False):
+    """Hits a light-view ray passes: the light's own shape; with ``backface`` surfaces facing the
+    light (front-face culling); with ``alpha`` transparent texels of alpha-tested
+    casters: the fragment shader's ``discard`` of texels with alpha < cutoff (003 §2.4)."""
     import drjit as dr
     import mitsuba as mi
     skip = mi.Bool(False)
@@ -333,4 +344,7 @@ def _skip(si, ray, backface, own_ptr):
         skip |= si.is_valid() & (si.shape == own_ptr)
     if backface:
         skip |= si.is_valid() & (dr.dot(si.n, ray.d) < 0)
+    if alpha:
+        from ..scene.build import transparent
+        skip |= transparent(si)
     return skip

@@ -11,6 +11,10 @@ One estimator serves both sides of a comparison, so they differ only in visibili
 
 Samples: a k×k jittered grid on the emitter's 2D sample domain per round, random numbers
 from PCG32 seeded by (seed, round, point): same seed, same bits.
+
+Shadow rays are Mitsuba's ``ray_test``, except in a scene with alpha-tested casters
+(``scene.has_alpha``): ``ray_test`` ignores BSDF opacity, so there :func:`occluded_alpha`
+intersects and continues through transparent texels (a symbolic loop; slower, so only there).
 """
 
 from __future__ import annotations
@@ -43,11 +47,42 @@ def sample_light(scene, si, emitter, k: int, seed: int, rnd: int, shadow: bool, 
     idx = dr.arange(mi.UInt32, n)
     # opaque: a literal seed would be baked into the kernel and compile a new one every round
     rng = mi.PCG32(n, dr.opaque(mi.UInt64, _hash32(seed, rnd)), mi.UInt64(idx))
-    return _loop(scene.mi_scene, si, emitter, rng, mi.UInt32(k), shadow, stratified)
+    alpha = bool(shadow and getattr(scene, "has_alpha", False))
+    return _loop(scene.mi_scene, si, emitter, rng, mi.UInt32(k), shadow, stratified, alpha)
+
+
+MAX_ALPHA_LAYERS = 64  # transparent texels a shadow ray may pass; a ray still on one after that is blocked
 
 
 @__import__("drjit").syntax
-def _loop(mi_scene, si, emitter, rng, k, shadow, stratified):
+def occluded_alpha(mi_scene, ray, active):
+    """``scene.mi_scene.ray_test`` that sees through transparent texels of alpha-tested casters.
+
+    Mitsuba's ``ray_test`` ignores BSDF opacity (a ``mask`` BSDF's holes block it), so: intersect
+    (position, normal and uv only), and while the hit is a transparent texel spawn a new segment
+    from it to the same end point. Returns mi.Bool: an opaque surface lies on the segment.
+    Segments that ``ray_test`` finds empty are done at its cost (a pre-pass with the same result:
+    one pass of 512² shadow rays on ``foliage`` took 14 ms instead of 16 ms; ``ray_test`` alone 2 ms)."""
+    import drjit as dr
+    import mitsuba as mi
+    from ..scene.build import transparent
+    target = ray(ray.maxt)
+    active = mi.Bool(active) & mi_scene.ray_test(ray, active)
+    flags = mi.RayFlags.Minimal | mi.RayFlags.UV
+    # the overload with flags is (ray, ray_flags, coherent, active): ``active`` third would be
+    # taken for ``coherent``
+    si = mi_scene.ray_intersect(ray, flags, False, active)
+    through = transparent(si, active)
+    i = mi.UInt32(0)
+    while dr.hint(through & (i < MAX_ALPHA_LAYERS), max_iterations=-1):
+        si = mi_scene.ray_intersect(si.spawn_ray_to(target), flags, False, through)
+        through = transparent(si, through)
+        i += 1
+    return active & si.is_valid()
+
+
+@__import__("drjit").syntax
+def _loop(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False):
     import drjit as dr
     import mitsuba as mi
     ctx = mi.BSDFContext()
@@ -73,7 +108,10 @@ def _loop(mi_scene, si, emitter, rng, k, shadow, stratified):
         c = dr.select(si.is_valid() & (ds.pdf > 0), c, 0.0)
         mag = c.x + c.y + c.z
         if shadow:
-            occluded = mi_scene.ray_test(si.spawn_ray_to(ds.p), si.is_valid() & (mag > 0))
+            if not alpha:
+                occluded = mi_scene.ray_test(si.spawn_ray_to(ds.p), si.is_valid() & (mag > 0))
+            else:
+                occluded = occluded_alpha(mi_scene, si.spawn_ray_to(ds.p), si.is_valid() & (mag > 0))
             vis = dr.select(occluded, 0.0, 1.0)
         else:
             vis = mi.Float(1.0)

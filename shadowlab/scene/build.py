@@ -2,12 +2,21 @@
 
 Shapes are loaded with ``optimize=False`` so each keeps its own id (DESIGN.md, Dr.Jit facts);
 the shape id of a pixel in the G-buffer is the index into ``Scene.shape_names``.
+
+An alpha-tested shape (``alpha_texture``, 003_b5589b67cce60746.txt §2.4) gets Mitsuba's ``mask``
+BSDF around its diffuse BSDF, with a binary opacity texture (:func:`opacity_texture`), looked up
+at the hit's Mitsuba uv (rectangle: u = (x + 1)/2, v = (y + 1)/2 in its local [−1, 1]², image
+row 0 at v = 0; other shapes: Mitsuba's own uv, meshes: their uv, if any).
+``Scene.has_alpha`` tells the ray paths (G-buffer, light views, ground-truth shadow rays) to look
+through transparent texels (:func:`transparent`); without alpha shapes they stay as they were.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from ..errors import SceneError
 from . import lights as lights_mod
@@ -25,7 +34,35 @@ def _transform(s):
 
 def _bsdf(s):
     d = {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(s.albedo)}}
-    return {"type": "twosided", "material": d} if s.two_sided else d
+    d = {"type": "twosided", "material": d} if s.two_sided else d
+    if s.alpha_texture is None:
+        return d
+    return {"type": "mask", "opacity": opacity_texture(s), "material": d}
+
+
+def opacity_texture(s) -> dict:
+    """Mitsuba ``bitmap`` texture of a shape's binary opacity (1 = alpha ≥ cutoff, 0 = discarded).
+
+    Thresholded once here, from :func:`shadowlab.scene.textures.read_alpha`, and looked up with
+    ``filter_type = "nearest"`` (no interpolation, so the cut-off is exact per texel), ``raw``
+    (no sRGB decoding of the 0/1 data) and ``wrap_mode = "clamp"`` (uv = 1 on the border stays in
+    the last texel). The ``mask`` BSDF around the shape's diffuse BSDF makes opacity-0 texels
+    transparent (null transmission 1). A fresh dict per call: loading takes the tensor over
+    (a second ``mi.load_dict`` of the same dict finds it empty)."""
+    import mitsuba as mi
+    from .textures import AlphaTextureError, opacity_mask, read_alpha
+    try:
+        a = read_alpha(s.alpha_texture)
+    except AlphaTextureError as e:
+        raise SceneError(f"shape {s.name!r}: alpha_texture {s.alpha_texture} {e}") from e
+    m = opacity_mask(a, s.alpha_cutoff)
+    # Mitsuba wants bitmap textures of at least 2×2 texels; doubling a 1-texel axis keeps every
+    # nearest lookup the same (texel ⌊2uW⌋ div 2 = ⌊uW⌋)
+    for ax in (0, 1):
+        if m.shape[ax] < 2:
+            m = np.repeat(m, 2, axis=ax)
+    return {"type": "bitmap", "data": mi.TensorXf(np.ascontiguousarray(m[..., None])), "raw": True,
+            "filter_type": "nearest", "wrap_mode": "clamp"}
 
 
 def shape_dicts(s) -> dict:
@@ -53,10 +90,11 @@ def shape_dicts(s) -> dict:
         frame = T().look_at(origin=p0, target=p1, up=up)
         out = {s.name: {"type": "cylinder", "to_world": M @ frame @ T().scale([s.radius, s.radius, length]), "bsdf": b}}
         if s.caps:
+            # a BSDF dict each: Mitsuba takes over the tensor of an alpha-tested shape's opacity
             out[s.name + "__cap0"] = {"type": "disk", "to_world": M @ frame @ T().scale([s.radius, s.radius, 1])
-                                     @ T().rotate([1, 0, 0], 180), "bsdf": b}
+                                     @ T().rotate([1, 0, 0], 180), "bsdf": _bsdf(s)}
             out[s.name + "__cap1"] = {"type": "disk", "to_world": M @ frame @ T().translate([0, 0, length])
-                                     @ T().scale([s.radius, s.radius, 1]), "bsdf": b}
+                                     @ T().scale([s.radius, s.radius, 1]), "bsdf": _bsdf(s)}
         return out
     return {s.name: {"type": s.type, "filename": s.filename, "to_world": M, "bsdf": b,
                      "face_normals": True}}
@@ -83,6 +121,29 @@ class Scene:
     shape_boxes: list = field(default_factory=list)  # (min, max) of each non-emitting shape
 
     @property
+    def has_alpha(self) -> bool:
+        """Some shape is an alpha-tested caster (``alpha_texture``): every ray path must then look
+        through its transparent texels (:func:`transparent`); without one the fast paths
+        (``ray_test``, a single ``ray_intersect``) are exact and are kept."""
+        return any(s.alpha_tested for s in self.spec.shapes)
+
+    def mitsuba_notes(self) -> dict:
+        """Caveats of Mitsuba's own ``direct`` integrator image (``mi.render``) for this scene, for a
+        reference's meta.json; empty when there are none.
+
+        Measured on mitsuba 3.9.1: ``direct`` shadow rays are ``ray_test``, which ignores a
+        ``mask`` BSDF's opacity, so an alpha-tested card casts the shadow of its whole quad; its
+        camera rays stop on the card too (a hole shows the card's BSDF times opacity 0, i.e. black,
+        not what lies behind). Shadowlab's own truth (V, shaded) sees through the holes."""
+        if not self.has_alpha:
+            return {}
+        return {"mitsuba_direct_ignores_alpha": (
+            "scene has alpha-tested shapes (mask BSDF): Mitsuba's direct integrator (the mitsuba.* "
+            "channels) does not see through their transparent texels: shadow rays (ray_test) are "
+            "blocked by the whole card and camera rays stop on it (holes render black). Compare "
+            "with the V.* and shaded.* channels, which do see through them.")}
+
+    @property
     def name(self):
         return self.spec.name
 
@@ -93,6 +154,16 @@ class Scene:
     @property
     def lights(self):
         return self.spec.lights
+
+
+def transparent(si, active=True):
+    """mi.Bool: ``si`` is a valid hit whose BSDF lets light through unscattered (null
+    transmission > 1/2): a transparent texel of a ``mask`` BSDF with binary opacity. A free
+    function so that symbolic loops can call it (a Scene dataclass inside a loop body would be
+    traversed as loop state)."""
+    valid = si.is_valid() & active
+    t = si.bsdf().eval_null_transmission(si, valid)
+    return valid & (t[0] > 0.5)
 
 
 def sensor_dict(cam, spp: int = 1, seed: int = 0) -> dict:
@@ -111,11 +182,15 @@ def sensor_dict(cam, spp: int = 1, seed: int = 0) -> dict:
 def build(spec: SceneSpec) -> Scene:
     """Load ``spec`` into Mitsuba (the backend must be initialised)."""
     import mitsuba as mi
-    geom = {}
-    for s in spec.shapes:
-        geom.update(shape_dicts(s))
+
+    def geometry():  # fresh dicts per load: Mitsuba takes over a bitmap texture's "data" tensor
+        geom = {}
+        for s in spec.shapes:
+            geom.update(shape_dicts(s))
+        return geom
+
     try:
-        probe = mi.load_dict({"type": "scene", **geom}, optimize=False)
+        probe = mi.load_dict({"type": "scene", **geometry()}, optimize=False)
     except Exception as e:  # Mitsuba's message names the plugin and the parameter
         raise SceneError(f"{spec.source}: Mitsuba could not load the shapes: {e}") from e
     boxes = [(tuple(sh.bbox().min), tuple(sh.bbox().max)) for sh in probe.shapes()]
@@ -123,7 +198,7 @@ def build(spec: SceneSpec) -> Scene:
     lo, hi = tuple(bb.min), tuple(bb.max)
     center = tuple((a + b) / 2 for a, b in zip(lo, hi))
     radius = max(1e-3, 0.5 * math.sqrt(sum((b - a) ** 2 for a, b in zip(lo, hi))))
-    d = {"type": "scene", **geom, "sensor": sensor_dict(spec.camera)}
+    d = {"type": "scene", **geometry(), "sensor": sensor_dict(spec.camera)}
     for l in spec.lights:
         key, ld = lights_mod.mitsuba_dict(l, center, radius)
         d[key] = ld

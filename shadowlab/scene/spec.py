@@ -7,11 +7,13 @@ name = "contact"
 description = "..."
 [camera]      position, target, up, fov (degrees, horizontal), resolution = [W, H]
 [[lights]]    name, kind = rect|disk|sphere|spot|point|directional, colour and power, size ...
-[[shapes]]    name, type = rectangle|disk|cube|sphere|cylinder|ply|obj, albedo, transform
+[[shapes]]    name, type = rectangle|disk|cube|sphere|cylinder|ply|obj, albedo, transform,
+              alpha_texture = "textures/leaf.png", alpha_cutoff = 0.5 (alpha-tested casters)
 ```
 
-Every error names the file, the key and what was expected (exit 2). No Mitsuba here: the
-spec is pure data, so it can be hashed, listed and validated without a backend.
+Every error names the file, the key and what was expected (exit 2). No Mitsuba backend here:
+the spec is pure data, so it can be hashed, listed and validated without one (an
+``alpha_texture`` is opened with ``mitsuba.Bitmap``, which needs no variant, to validate it).
 """
 
 from __future__ import annotations
@@ -105,6 +107,12 @@ class ShapeSpec:
     caps: bool = True            # cylinder: close the tube with two disks
     filename: str | None = None  # ply / obj, resolved relative to the scene file
     two_sided: bool = True
+    alpha_texture: str | None = None  # alpha-tested caster: image file, resolved relative to the scene file
+    alpha_cutoff: float = 0.5         # texels with alpha < cutoff are transparent (discarded)
+
+    @property
+    def alpha_tested(self) -> bool:
+        return self.alpha_texture is not None
 
 
 @dataclass(frozen=True)
@@ -124,6 +132,15 @@ class SceneSpec:
             if s["filename"]:
                 p = Path(s["filename"])
                 s["file_sha256"] = hashlib.sha256(p.read_bytes()).hexdigest() if p.exists() else None
+            # alpha testing: absent from the hashed dict unless used, so that the hash of a scene
+            # without alpha textures is what it was before the keys existed (stored references
+            # keep matching); when used, the texture's content is hashed, not its path
+            tex = s.pop("alpha_texture")
+            cutoff = s.pop("alpha_cutoff")
+            if tex is not None:
+                p = Path(tex)
+                s["alpha_texture_sha256"] = hashlib.sha256(p.read_bytes()).hexdigest() if p.exists() else None
+                s["alpha_cutoff"] = cutoff
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()
 
     def light(self, name: str) -> LightSpec:
@@ -318,14 +335,35 @@ def parse(data: dict, path: str = "<scene>") -> SceneSpec:
             if not p.exists():
                 r.fail("filename", f"an existing .{typ} file (looked for {p})", fn)
             kw["filename"] = str(p)
+        if r.has("alpha_texture"):
+            kw["alpha_texture"] = _alpha_texture(r, base)
+            kw["alpha_cutoff"] = r.num("alpha_cutoff", default=0.5, lo=0.0, hi=1.0)
+        elif r.has("alpha_cutoff"):
+            r.fail("alpha_cutoff", "no alpha_cutoff without alpha_texture (the image whose alpha it tests)",
+                   st["alpha_cutoff"])
         allowed = {"name", "type", "albedo", "translate", "rotate", "scale", "two_sided", "center", "radius",
-                   "p0", "p1", "caps", "filename"}
+                   "p0", "p1", "caps", "filename", "alpha_texture", "alpha_cutoff"}
         for k in st:
             if k not in allowed:
                 r.fail(k, f"no such key (allowed: {', '.join(sorted(allowed))})", None)
         shapes.append(ShapeSpec(**kw))
     return SceneSpec(name=name, camera=camera, lights=tuple(lights), shapes=tuple(shapes),
                      description=top.str("description", default=""), source=str(path))
+
+
+def _alpha_texture(r: _Reader, base: Path) -> str:
+    """Validate ``alpha_texture`` (a readable image with an alpha channel, or greyscale; see
+    :mod:`shadowlab.scene.textures`) and return its resolved path."""
+    fn = r.str("alpha_texture")
+    p = (base / fn).resolve()
+    if not p.is_file():
+        r.fail("alpha_texture", f"an existing image file, relative to the scene file (looked for {p})", fn)
+    from .textures import AlphaTextureError, read_alpha
+    try:
+        read_alpha(p)
+    except AlphaTextureError as e:
+        r.fail("alpha_texture", f"an image with an alpha channel or a greyscale mask: {p} {e}", fn)
+    return str(p)
 
 
 def load_spec(path) -> SceneSpec:
