@@ -59,8 +59,12 @@ def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0
     t0 = time.perf_counter()
     frame = make_frame(sc, ss=ss, seed=seed)
     with _progress_bar(None, f"truth {sc.name}", progress) as bar:
-        truth = render_truth(frame, k=strata, target_se=target_se, max_rounds=max_rounds, seed=seed, spp=spp,
-                             progress=bar.update)
+        if sc.spec.sdf:  # SDF-only objects: Mitsuba cannot see them; the MC cone reference (004 §3.3.1)
+            from .sdf import reference_hook
+            truth = reference_hook(frame, seed=seed, progress=bar.update)
+        else:
+            truth = render_truth(frame, k=strata, target_se=target_se, max_rounds=max_rounds, seed=seed, spp=spp,
+                                 progress=bar.update)
     wall = time.perf_counter() - t0
     info = backend.machine_info()
     meta = {"scene": sc.name, "scene_hash": sc.spec.digest(), "resolution": list(sc.resolution),
@@ -73,6 +77,11 @@ def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0
                         "mitsuba_spp": spp},
             "lights": [l.name for l in sc.lights], "stats": truth.stats, "machine": info}
     meta.update(sc.mitsuba_notes())  # e.g. alpha-tested casters that mi.render's direct integrator ignores
+    if sc.spec.sdf:
+        from .sdf.reference import NOTE, TRUTH_KIND
+        meta.update(truth=TRUTH_KIND, not_mitsuba_truth=NOTE)
+        meta["samples"] = {"mc_cone_samples": truth.stats["mc_cone_samples"], "shadow_rays": truth.stats["shadow_rays"],
+                           "mean_rays_per_pixel": meta["samples"]["mean_rays_per_pixel"], "mitsuba_spp": 0}
     path = store.save(truth, meta, dest, force=force)
     return path, meta
 
@@ -133,10 +142,12 @@ def technique_metrics(frame, truth, result) -> tuple[dict, dict, dict]:
 
 def compare(scene: str, techniques: list[str], sets: list[str] | None = None, out: Path | None = None,
             resolution=None, *, render_missing: bool = True, progress: bool = True, base: Path | None = None,
-            params: dict | None = None) -> dict:
+            params: dict | None = None, preset: dict | None = None) -> dict:
     """Compare ``techniques`` with the stored truth of ``scene``; write a report to ``out``.
 
     A missing reference is rendered and stored first (``render_missing``); a stale one is an error.
+    ``params``: {technique: {param: value}} applied under ``sets`` (e.g. a preset's values);
+    ``preset``: {name, path, values} of that preset, recorded in the run (metrics.json, report).
     """
     from .render.frame import make_frame
     from .report import build
@@ -168,6 +179,8 @@ def compare(scene: str, techniques: list[str], sets: list[str] | None = None, ou
                       "techniques": {}}, "machine": backend.machine_info()}
     if truth.mitsuba is not None:
         run["images"]["mitsuba"] = truth.mitsuba
+    if preset is not None:
+        run["preset"] = preset
     for n, (res, p, timing) in results.items():
         m, per_light, imgs = technique_metrics(frame, truth, res)
         run["techniques"][n] = {"params": p, **timing, "metrics": m, "per_light": per_light,

@@ -2,6 +2,12 @@
 
 Every technique of a comparison reads the same FrameContext (DESIGN.md, data flow), so
 primary rays, unshadowed light and shadow maps are computed once and shared.
+
+``frame.sdf`` is the scene's signed distance field (:func:`shadowlab.sdf.sdf_of`), None for scenes
+with meshes. A scene whose objects all have Mitsuba twins keeps the Mitsuba G-buffer (techniques
+are then evaluated at the ground truth's own points); a scene with SDF-only objects (``[[sdf]]``,
+e.g. a Mandelbulb, which Mitsuba cannot see) gets the cone-traced G-buffer of 004 §2.9
+(:func:`shadowlab.sdf.gbuffer.cone_gbuffer`), and shadow maps, which Mitsuba ray casts, refuse it.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ class FrameContext:
     scene: object
     gbuffer: GBuffer
     unshadowed: dict                       # light name -> flat mi.Color3f U_L
+    sdf: object = None                     # shadowlab.sdf.SDF of the scene, None with meshes
     _views: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -34,6 +41,11 @@ class FrameContext:
                    backface: bool = False) -> LightView:
         """The light's depth map, cast once per (light, resolution, depth bits, back faces)."""
         spec = self.scene.spec.light(light_name)
+        if self.scene.spec.sdf:
+            from ..errors import InputError
+            raise InputError(f"scene {self.scene.name!r} has SDF-only objects ([[sdf]]) that Mitsuba does not see, "
+                             "so its shadow maps (Mitsuba ray casts from the light) would miss them; compare the "
+                             "SDF techniques on it, or the shadow-map techniques on a scene with Mitsuba twins")
         key = (light_name, int(res or spec.shadow_map), int(bits or spec.depth_bits), bool(backface))
         if key not in self._views:
             self._views[key] = light_view(self.scene, spec, res=key[1], bits=key[2], backface=key[3])
@@ -49,7 +61,15 @@ class FrameContext:
 
 
 def make_frame(scene, ss: int = 1, u_strata: int = 16, seed: int = 0) -> FrameContext:
-    """G-buffer at pixel (sub-)centres and U_L for every light."""
-    gb = gbuffer(scene, ss=ss)
-    U = {l.name: unshadowed(scene, gb, l.name, k=u_strata, seed=seed) for l in scene.spec.lights}
-    return FrameContext(scene=scene, gbuffer=gb, unshadowed=U)
+    """G-buffer at pixel (sub-)centres and U_L for every light (cone traced for scenes with
+    SDF-only objects, see the module docstring)."""
+    from ..sdf import sdf_of
+    sdf = sdf_of(scene)
+    if scene.spec.sdf:
+        from ..sdf import gbuffer as sdf_gbuffer
+        gb = sdf_gbuffer.cone_gbuffer(scene, sdf, ss=ss)
+        U = {l.name: sdf_gbuffer.unshadowed(scene, gb, l.name, k=u_strata, seed=seed) for l in scene.spec.lights}
+    else:
+        gb = gbuffer(scene, ss=ss)
+        U = {l.name: unshadowed(scene, gb, l.name, k=u_strata, seed=seed) for l in scene.spec.lights}
+    return FrameContext(scene=scene, gbuffer=gb, unshadowed=U, sdf=sdf)

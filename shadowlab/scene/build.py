@@ -28,7 +28,9 @@ def _transform(s):
     T = mi.ScalarTransform4f
     m = T().translate(list(s.translate))
     for ax, ay, az, deg in s.rotate:
-        m = m @ T().rotate([ax, ay, az], deg)
+        # Mitsuba's rotate() does not normalise its axis (a non-unit axis shears the shape)
+        norm = math.sqrt(ax * ax + ay * ay + az * az)
+        m = m @ T().rotate([ax / norm, ay / norm, az / norm], deg)
     return m @ T().scale(list(s.scale))
 
 
@@ -196,6 +198,16 @@ def build(spec: SceneSpec) -> Scene:
     boxes = [(tuple(sh.bbox().min), tuple(sh.bbox().max)) for sh in probe.shapes()]
     bb = probe.bbox()
     lo, hi = tuple(bb.min), tuple(bb.max)
+    sb = None
+    if spec.sdf:  # SDF-only objects ([[sdf]], no Mitsuba twin) count for the scene's bounds too
+        from ..sdf.spec import bounds
+        sb = bounds(spec.sdf)
+    if sb is not None:
+        lo = tuple(float(c) if not boxes else min(a, float(c)) for a, c in zip(lo, sb[0]))
+        hi = tuple(float(c) if not boxes else max(a, float(c)) for a, c in zip(hi, sb[1]))
+    elif not boxes:
+        raise SceneError(f"{spec.source}: the scene has no bounded object (only [[sdf]] planes); add a shape or a "
+                         "bounded [[sdf]] object")
     center = tuple((a + b) / 2 for a, b in zip(lo, hi))
     radius = max(1e-3, 0.5 * math.sqrt(sum((b - a) ** 2 for a, b in zip(lo, hi))))
     d = {"type": "scene", **geometry(), "sensor": sensor_dict(spec.camera)}

@@ -9,6 +9,7 @@ description = "..."
 [[lights]]    name, kind = rect|disk|sphere|spot|point|directional, colour and power, size ...
 [[shapes]]    name, type = rectangle|disk|cube|sphere|cylinder|ply|obj, albedo, transform,
               alpha_texture = "textures/leaf.png", alpha_cutoff = 0.5 (alpha-tested casters)
+[[sdf]]       SDF-only objects without a Mitsuba twin (Mandelbulb, CSG, ...): see shadowlab.sdf.spec
 ```
 
 Every error names the file, the key and what was expected (exit 2). No Mitsuba backend here:
@@ -123,11 +124,14 @@ class SceneSpec:
     shapes: tuple
     description: str = ""
     source: str = ""             # path of the TOML file (not part of the hash)
+    sdf: tuple = ()              # [[sdf]] tables (shadowlab.sdf.spec): SDF-only objects, no Mitsuba twin
 
     def digest(self) -> str:
         """SHA-256 of the scene's content (not its path); a reference stores it."""
         d = asdict(self)
         d.pop("source")
+        if not d["sdf"]:  # absent unless used: scenes without [[sdf]] hash as before the key existed
+            d.pop("sdf")
         for s in d["shapes"]:
             if s["filename"]:
                 p = Path(s["filename"])
@@ -224,10 +228,24 @@ def _norm(v):
     return math.sqrt(sum(x * x for x in v))
 
 
+def rotations(r: _Reader, table: dict) -> list:
+    """The ``rotate`` key of a shape: [ax, ay, az, degrees] or a list of them, axes non-zero."""
+    rot = table.get("rotate", [])
+    if rot and isinstance(rot[0], (int, float)):
+        rot = [rot]
+    if not isinstance(rot, list) or any(not isinstance(q, list) or len(q) != 4 or
+                                        any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in q)
+                                        for q in rot):
+        r.fail("rotate", "[ax, ay, az, degrees] or a list of them", table.get("rotate"))
+    if any(not any(q[:3]) for q in rot):
+        r.fail("rotate", "a non-zero rotation axis in every [ax, ay, az, degrees]", table.get("rotate"))
+    return rot
+
+
 def parse(data: dict, path: str = "<scene>") -> SceneSpec:
     """Validate a parsed TOML document and return a SceneSpec (raises SceneError)."""
     top = _Reader(path, "", data)
-    known_top = {"name", "description", "camera", "lights", "shapes"}
+    known_top = {"name", "description", "camera", "lights", "shapes", "sdf"}
     for k in data:
         if k not in known_top:
             top.fail(k, f"no such key (allowed: {', '.join(sorted(known_top))})", None)
@@ -293,9 +311,9 @@ def parse(data: dict, path: str = "<scene>") -> SceneSpec:
                 kw["angle"] = r.num("angle", default=30.0, lo=1.0, hi=80.0)
         lights.append(LightSpec(**kw))
 
-    shapes_raw = data.get("shapes")
-    if not isinstance(shapes_raw, list) or not shapes_raw:
-        top.fail("shapes", "a non-empty array of [[shapes]] tables", shapes_raw)
+    shapes_raw = data.get("shapes", [] if "sdf" in data else None)
+    if not isinstance(shapes_raw, list) or not (shapes_raw or data.get("sdf")):
+        top.fail("shapes", "a non-empty array of [[shapes]] tables (or [[sdf]] objects)", shapes_raw)
     shapes, snames = [], set()
     base = Path(path).parent
     for i, st in enumerate(shapes_raw):
@@ -312,12 +330,7 @@ def parse(data: dict, path: str = "<scene>") -> SceneSpec:
         alb = r.vec("albedo", default=(0.5, 0.5, 0.5))
         if any(a < 0 or a > 1 for a in alb):
             r.fail("albedo", "three numbers in [0, 1]", list(alb))
-        rot = st.get("rotate", [])
-        if rot and isinstance(rot[0], (int, float)):
-            rot = [rot]
-        if not isinstance(rot, list) or any(not isinstance(q, list) or len(q) != 4 or
-                                            any(not isinstance(x, (int, float)) for x in q) for q in rot):
-            r.fail("rotate", "[ax, ay, az, degrees] or a list of them", st.get("rotate"))
+        rot = rotations(r, st)
         kw = dict(name=sname, type=typ, albedo=alb, translate=r.vec("translate", default=(0, 0, 0)),
                   rotate=tuple(tuple(float(x) for x in q) for q in rot),
                   scale=r.vec("scale", default=(1, 1, 1), positive=True),
@@ -347,8 +360,16 @@ def parse(data: dict, path: str = "<scene>") -> SceneSpec:
             if k not in allowed:
                 r.fail(k, f"no such key (allowed: {', '.join(sorted(allowed))})", None)
         shapes.append(ShapeSpec(**kw))
+    sdf = ()
+    if "sdf" in data:
+        from ..sdf.spec import parse_sdf_tables
+        sdf = parse_sdf_tables(data["sdf"], path, snames | names)
+        meshy = [s.name for s in shapes if s.type in ("ply", "obj") or s.alpha_tested]
+        if meshy:
+            top.fail("sdf", "no [[sdf]] objects in a scene with meshes or alpha-tested shapes (they have no "
+                     f"signed distance field): {', '.join(meshy)}", None)
     return SceneSpec(name=name, camera=camera, lights=tuple(lights), shapes=tuple(shapes),
-                     description=top.str("description", default=""), source=str(path))
+                     description=top.str("description", default=""), source=str(path), sdf=sdf)
 
 
 def _alpha_texture(r: _Reader, base: Path) -> str:
