@@ -1,0 +1,174 @@
+"""Presets: named parameter sets ``{technique: {param: value}}`` in a TOML or JSON file.
+
+``shadowlab fit`` writes the fitted values (and the values it held fixed that differ from the
+defaults) as ``DIR/preset.toml`` and, with ``--save-preset FILE``, to FILE;
+``shadowlab compare --preset FILE`` applies one (``--set`` overrides it). Every value is
+validated by its technique's :class:`~shadowlab.techniques.base.Param` when the file is read.
+
+TOML::
+
+    name = "contact-pcss"                # optional; default: the file name without suffix
+    description = "fitted by shadowlab fit"
+    [meta]                               # optional, free-form (scene, loss, losses before/after)
+    scene = "contact"
+    [pcss]
+    light_size = 0.7386
+
+JSON: the same keys, ``{"name": ..., "pcss": {"light_size": 0.7386}}``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..errors import InputError
+
+RESERVED = ("name", "description", "meta")
+
+
+@dataclass
+class Preset:
+    name: str
+    values: dict                   # technique -> {param: parsed value}
+    path: str = ""
+    description: str = ""
+    meta: dict = field(default_factory=dict)
+
+    def info(self) -> dict:
+        return {"name": self.name, "path": self.path, "values": self.values}
+
+
+def _parse_text(path: Path, text: str) -> dict:
+    suffix = path.suffix.lower()
+    if suffix == ".json":
+        try:
+            return json.loads(text)
+        except json.JSONDecodeError as e:
+            raise InputError(f"preset {path}: not valid JSON ({e})") from None
+    import tomllib
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        if suffix == ".toml":
+            raise InputError(f"preset {path}: not valid TOML ({e})") from None
+        try:
+            return json.loads(text)
+        except json.JSONDecodeError:
+            raise InputError(f"preset {path}: neither valid TOML ({e}) nor JSON") from None
+
+
+def from_dict(data, path: str = "<preset>") -> Preset:
+    """Validate a preset mapping (see the module docstring)."""
+    from ..techniques import base
+    if not isinstance(data, dict):
+        raise InputError(f"preset {path}: expected a table of techniques, got {type(data).__name__}")
+    name = data.get("name", Path(path).stem if path != "<preset>" else "preset")
+    if not isinstance(name, str) or not name.strip():
+        raise InputError(f"preset {path}: `name` must be a non-empty string")
+    desc = data.get("description", "")
+    meta = data.get("meta", {})
+    if not isinstance(meta, dict):
+        raise InputError(f"preset {path}: `meta` must be a table")
+    values = {}
+    for tech, params in data.items():
+        if tech in RESERVED:
+            continue
+        try:
+            t = base.get(tech)
+        except InputError as e:
+            raise InputError(f"preset {path}: {e}") from None
+        if not isinstance(params, dict):
+            raise InputError(f"preset {path}: [{tech}] must be a table of parameter = value, "
+                             f"got {type(params).__name__}")
+        vals = {}
+        for k, v in params.items():
+            try:
+                vals[k] = t.param(k).parse(v, tech)
+            except InputError as e:
+                raise InputError(f"preset {path}: {e}") from None
+        values[tech] = vals
+    if not values:
+        raise InputError(f"preset {path}: it names no technique; expected e.g. [pcss] light_size = 0.8")
+    return Preset(name=name.strip(), values=values, path=str(path), description=str(desc), meta=meta)
+
+
+def load(path) -> Preset:
+    """Read and validate a preset file; InputError (exit 2) names the file and the problem."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"preset file {p} does not exist (write one with `shadowlab fit ... --save-preset {p}`)")
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"preset {p}: cannot read it ({e})") from None
+    return from_dict(_parse_text(p, text), str(p))
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            raise InputError(f"preset: cannot store the non-finite value {v}")
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v, ensure_ascii=False)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise InputError(f"preset: cannot store a value of type {type(v).__name__}")
+
+
+def _key(k: str) -> str:
+    return k if k and all(c.isalnum() or c in "_-" for c in k) else json.dumps(k)
+
+
+def to_toml(name: str, values: dict, description: str = "", meta: dict | None = None) -> str:
+    lines = [f"name = {_toml_value(name)}"]
+    if description:
+        lines.append(f"description = {_toml_value(description)}")
+    if meta:
+        lines += ["", "[meta]"] + [f"{_key(k)} = {_toml_value(v)}" for k, v in meta.items() if v is not None]
+    for tech, params in values.items():
+        lines += ["", f"[{_key(tech)}]"] + [f"{_key(k)} = {_toml_value(v)}" for k, v in params.items()]
+    return "\n".join(lines) + "\n"
+
+
+def check_writable(path) -> Path:
+    """Refuse a preset destination that cannot be a file (before any fitting is done)."""
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(f"--save-preset {p} is a directory; give a file name such as {p / 'preset.toml'}")
+    if p.suffix.lower() not in (".toml", ".json"):
+        raise InputError(f"--save-preset {p}: the file name must end in .toml or .json")
+    return p
+
+
+def save(path, name: str, values: dict, description: str = "", meta: dict | None = None) -> Path:
+    """Write a preset atomically (TOML, or JSON for a .json name); it is read back and validated
+    first, so a file that is written can be loaded."""
+    p = check_writable(path)
+    if p.suffix.lower() == ".json":
+        text = json.dumps({"name": name, **({"description": description} if description else {}),
+                           **({"meta": meta} if meta else {}), **values}, indent=2) + "\n"
+    else:
+        text = to_toml(name, values, description, meta)
+    from_dict(_parse_text(p, text), str(p))
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", dir=p.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, p)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return p

@@ -1,0 +1,337 @@
+"""Fitting jobs: one technique (``shadowlab fit SCENE --technique T``) or all (``--all``).
+
+A job validates everything first (scene, reference, techniques, parameter names, values,
+ranges, preset, output paths), so bad input stops it with an ``InputError`` (exit 2) before
+anything is rendered or written; then it builds the FrameContext once, fits, renders the start
+and the fitted values once more for the report's metrics and images, and writes the report.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError, ShadowlabError
+from . import search as S
+from .objective import DIFFERENTIABLE_LOSSES, KernelCounter, Objective, check_loss
+
+#: parameters ``--all`` (and ``fit`` without ``--params``) fits for techniques without
+#: differentiable parameters; every other technique fits its differentiable parameters
+DEFAULT_PARAMS = {"hard": ("slope_scaled_depth_bias", "depth_bias"), "pcf": ("kernel", "softness")}
+
+
+@dataclass
+class Budget:
+    steps: int = 25          # Adam steps
+    lr: float = 0.1          # Adam learning rate, in units of the window
+    evals: int = 20          # evaluations of one 1-D golden search
+    points: int = 21         # grid points per parameter
+    rounds: int = 0          # coordinate rounds (0 = 1 for one parameter, else 2)
+    beta_1: float = 0.7      # Adam's first-moment weight
+    decay: float = 0.1       # Adam's learning rate at the last step, as a fraction of lr
+
+    def check(self):
+        for name, v, lo, hi in (("--steps", self.steps, 1, 10000), ("--evals", self.evals, 3, 10000),
+                                ("--grid-points", self.points, 2, 100000), ("--rounds", self.rounds, 0, 100)):
+            if not (isinstance(v, int) and lo <= v <= hi):
+                raise InputError(f"{name} {v}: expected an integer in [{lo}, {hi}]")
+        if not (isinstance(self.lr, (int, float)) and math.isfinite(self.lr) and 0 < self.lr <= 1):
+            raise InputError(f"--lr {self.lr}: expected a learning rate in (0, 1] (a fraction of the window)")
+        return self
+
+
+def default_params(tech) -> tuple:
+    if tech.name in DEFAULT_PARAMS:
+        return DEFAULT_PARAMS[tech.name]
+    return tuple(p.name for p in tech.params if p.differentiable)
+
+
+def parse_params(csv) -> list | None:
+    if csv is None:
+        return None
+    items = csv if isinstance(csv, (list, tuple)) else str(csv).split(",")
+    names = [str(x).strip() for x in items if str(x).strip()]
+    if not names:
+        raise InputError("--params is empty; name parameters such as --params light_size")
+    dup = {n for n in names if names.count(n) > 1}
+    if dup:
+        raise InputError(f"--params names {', '.join(sorted(dup))} twice")
+    return names
+
+
+def parse_ranges(items, techniques: list[str]) -> dict:
+    """``["light_size=0.2:3", "pcf.softness=0.5:4"]`` -> {technique: {param: (lo, hi)}}; an item
+    without ``TECH.`` applies to the only technique being fitted."""
+    out = {t: {} for t in techniques}
+    for it in items or []:
+        if "=" not in it or ":" not in it.split("=", 1)[1]:
+            raise InputError(f"--range {it!r}: expected [TECHNIQUE.]PARAM=LO:HI, e.g. light_size=0.2:3")
+        key, val = it.split("=", 1)
+        if "." in key:
+            tech, pname = key.split(".", 1)
+        elif len(techniques) == 1:
+            tech, pname = techniques[0], key
+        else:
+            raise InputError(f"--range {it!r}: with several techniques write TECHNIQUE.PARAM=LO:HI")
+        if tech not in out:
+            raise InputError(f"--range {it!r}: technique {tech!r} is not being fitted ({', '.join(techniques)})")
+        try:
+            lo, hi = (float(x) for x in val.split(":", 1))
+        except ValueError:
+            raise InputError(f"--range {it!r}: LO and HI must be numbers") from None
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise InputError(f"--range {it!r}: LO and HI must be finite")
+        out[tech][pname.strip()] = (lo, hi)
+    return out
+
+
+def reference_value(tech, name: str, value, frame):
+    """The value a window is centred on and a "from the scene" default replaced by: the value
+    itself, except ``pcss.light_size`` 0 (= from the scene), which becomes the scene's light
+    size (the mean over the lights of ``pcss.scene_light_size``)."""
+    if tech.name == "pcss" and name == "light_size" and not isinstance(value, bool) and float(value) == 0.0:
+        from ..techniques.pcss import scene_light_size
+        s = float(np.mean([scene_light_size(l) for l in frame.lights]))
+        if s <= 0:
+            raise InputError("pcss.light_size from the scene is 0 (delta lights): give a start value with "
+                             "--set pcss.light_size=VALUE")
+        return s
+    if name == "resolution" and tech.param(name).kind == "int" and tech.param(name).lo == 0 and int(value) == 0:
+        return int(max(l.shadow_map for l in frame.lights))
+    return value
+
+
+def scene_floor(tech, name: str, ref):
+    """The lower end of the window of a parameter whose 0 means "from the scene": a fitted value
+    must not become that 0 (``pcss.light_size``: 10⁻³ of the scene's size; ``resolution``: 64)."""
+    if tech.name == "pcss" and name == "light_size":
+        return 1e-3 * float(ref)
+    if name == "resolution":
+        p = tech.param(name)
+        if p.kind == "int" and p.lo == 0:
+            return 64
+    return None
+
+
+def _f32(x):
+    """Shortest decimal of a float32 value (what a Dr.Jit parameter actually held)."""
+    return float(str(np.float32(x)))
+
+
+def _clean(v):
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return _f32(v)
+    return v
+
+
+def _inside(prm, v):
+    """A fitted value inside its declared range (the float32 round trip may step over an end)."""
+    if prm.kind == "float":
+        if prm.lo is not None:
+            v = max(v, float(prm.lo))
+        if prm.hi is not None:
+            v = min(v, float(prm.hi))
+    return v
+
+
+@dataclass
+class Plan:
+    tech: object
+    names: list
+    dims: list
+    start: dict
+    fixed: dict
+    loss: str
+    method: str
+
+
+def plan(tech_name: str, frame, *, params=None, method="auto", loss="rmse_penumbra", sets=None, ranges=None) -> Plan:
+    """Validate one technique's fit and build its search space (no rendering)."""
+    from ..techniques import base
+    tech = base.get(tech_name)
+    check_loss(loss)
+    if method not in S.METHODS:
+        raise InputError(f"--method {method!r}: expected one of {', '.join(S.METHODS)}")
+    names = list(params) if params else list(default_params(tech))
+    if not names:
+        raise InputError(f"technique {tech.name!r} has no differentiable parameter to fit by default; name the "
+                         f"parameters with --params (its parameters: {', '.join(p.name for p in tech.params)})")
+    for n in names:
+        tech.param(n)                                   # unknown name -> InputError listing the parameters
+    ranges = dict(ranges or {})
+    for n in ranges:
+        tech.param(n)
+        if n not in names:
+            raise InputError(f"--range {tech.name}.{n}: {n!r} is not among the fitted parameters ({', '.join(names)})")
+    values = tech.resolve(sets or {})                   # validated: unknown or out-of-range values -> InputError
+    dims, start = [], {}
+    for n in names:
+        p = tech.param(n)
+        ref = reference_value(tech, n, p.default, frame)
+        st = reference_value(tech, n, values[n], frame)
+        d = S.make_dim(p, method, st, ref, ranges.get(n), loss in DIFFERENTIABLE_LOSSES, tech.name,
+                       scene_floor(tech, n, ref))
+        dims.append(d)
+        start[n] = st
+    fixed = {k: v for k, v in values.items() if k not in names}
+    return Plan(tech=tech, names=names, dims=dims, start=start, fixed=fixed, loss=loss, method=method)
+
+
+def execute(p: Plan, frame, truth, budget: Budget) -> dict:
+    """Run one planned fit; returns the result dict (JSON-able, plus ``images``: numpy)."""
+    import drjit as dr
+    from ..pipeline import technique_metrics
+    obj = Objective(frame, truth, p.tech, p.loss, fixed=p.fixed)
+    with KernelCounter() as counter:
+        dr.sync_thread()
+        t0 = time.perf_counter()
+        s = S.Search(obj, counter, tuple(p.names), start=dict(p.start))
+        S.optimise(s, p.dims, steps=budget.steps, lr=budget.lr, evals=budget.evals, points=budget.points,
+                   rounds=budget.rounds, fallback=p.method == "auto", beta_1=budget.beta_1, decay=budget.decay)
+        dr.sync_thread()
+        wall = time.perf_counter() - t0
+    best_obj, best = s.best
+    fitted = {d.name: _inside(d.param, _clean(best[d.name])) for d in p.dims}
+    for d in p.dims:                              # a narrowed window may hide a better value outside it
+        if d.param.kind in ("float", "int"):
+            for end, bound, side in ((d.lo, d.param.lo, "lower"), (d.hi, d.param.hi, "upper")):
+                if abs(float(fitted[d.name]) - end) <= 1e-6 * max(abs(end), 1e-12) and end != bound:
+                    s.notes.append(f"{d.name} ended on the {side} end {end:g} of its window (declared range "
+                                   f"[{d.param.lo:g}, {d.param.hi:g}]): widen it with --range {p.tech.name}."
+                                   f"{d.name}=LO:HI")
+    obj_before = s.history[0]["objective"]
+    hist = s.history
+    evaluations, gradients = obj.evaluations, obj.gradients
+    # the report's metrics and images (outside the search: not counted)
+    res_b = p.tech.render(frame, {**p.fixed, **p.start})
+    res_a = p.tech.render(frame, {**p.fixed, **fitted})
+    m_b, pl_b, img_b = technique_metrics(frame, truth, res_b)
+    m_a, pl_a, img_a = technique_metrics(frame, truth, res_a)
+    defaults = p.tech.defaults()
+    nondefault = {k: _clean(v) for k, v in p.fixed.items() if v != defaults.get(k)}
+    new_per_it = [h["kernels_new"] for h in hist]
+    return {
+        "technique": p.tech.name, "method": p.method, "loss": obj.describe(),
+        "params": {d.name: {**d.describe(), "start": _clean(p.start[d.name]), "fitted": fitted[d.name],
+                            "reference": _clean(d.ref)} for d in p.dims},
+        "fixed": nondefault,
+        "loss_before": obj.report(obj_before), "loss_after": obj.report(best_obj),
+        "objective_before": obj_before, "objective_after": best_obj,
+        "iterations": len(hist) - 1, "evaluations": evaluations, "gradient_evaluations": gradients,
+        "wall_time_s": wall,
+        "kernels": {"compiled": int(sum(h["kernels_compiled"] for h in hist)),
+                    "loaded_from_disk": int(sum(h["kernels_new"] - h["kernels_compiled"] for h in hist)),
+                    "launched": int(sum(h["kernels_launched"] for h in hist)),
+                    "iterations_with_new_kernels": int(sum(1 for k in new_per_it if k)),
+                    "new_per_iteration": new_per_it},
+        "metrics_before": m_b, "metrics_after": m_a, "per_light_before": pl_b, "per_light_after": pl_a,
+        "notes": list(s.notes),
+        "history": hist,
+        "preset_values": {**nondefault, **fitted},
+        "images": {"before": img_b, "after": img_a},
+    }
+
+
+def prepare(scene: str, resolution=None, base: Path | None = None):
+    """(scene, truth, meta, frame): the stored reference is required (never rendered here);
+    a missing or stale one is a ReferenceError_ (exit 2) naming the command that makes it."""
+    from ..pipeline import load_scene
+    from ..reference import store
+    from ..render.frame import make_frame
+    sc = load_scene(scene, resolution)
+    truth, meta = store.load(sc.spec, sc.resolution, base)
+    frame = make_frame(sc, ss=int(meta.get("supersampling", 1)), seed=int(meta.get("seed", 0)))
+    return sc, truth, meta, frame
+
+
+def fit(scene: str, technique: str | None = None, *, params=None, method: str = "auto", loss: str = "rmse_penumbra",
+        all_techniques: bool = False, sets=None, preset=None, ranges=None, budget: Budget | None = None,
+        out=None, save_preset=None, preset_name: str | None = None, resolution=None, base: Path | None = None,
+        echo=None) -> dict:
+    """The ``shadowlab fit`` job. Returns the run dict (``mode`` "one" or "all") and writes the
+    report to ``out`` (if given) and the preset to ``save_preset`` (if given)."""
+    from ..techniques import base as tbase
+    from . import preset as P
+    from . import report as R
+    budget = (budget or Budget()).check()
+    check_loss(loss)
+    if method not in S.METHODS:
+        raise InputError(f"--method {method!r}: expected one of {', '.join(S.METHODS)}")
+    if all_techniques and technique:
+        raise InputError("give either --technique NAME or --all, not both")
+    if not all_techniques and not technique:
+        raise InputError("name the technique to fit with --technique NAME (or fit every technique with --all)")
+    if all_techniques and params:
+        raise InputError("--params applies to one --technique; --all fits each technique's default parameters")
+    techs = tbase.names() if all_techniques else [technique]
+    for t in techs:
+        tbase.get(t)                                         # unknown technique -> InputError
+    pre = P.load(preset) if preset else None
+    sets_by = tbase.parse_sets(sets or [], techs)
+    ranges_by = parse_ranges(ranges or [], techs)
+    names = parse_params(params)
+    if out is not None:
+        R.check_out(Path(out))
+    if save_preset is not None:
+        P.check_writable(save_preset)
+    sc, truth, meta, frame = prepare(scene, resolution, base)
+    plans, skipped = {}, {}
+    for t in techs:
+        s = {**(pre.values.get(t, {}) if pre else {}), **sets_by.get(t, {})}
+        try:
+            plans[t] = plan(t, frame, params=names, method=method, loss=loss, sets=s, ranges=ranges_by.get(t))
+        except InputError as e:
+            if not all_techniques:
+                raise
+            skipped[t] = str(e).split(" (its parameters:")[0]
+    if all_techniques and not plans:
+        raise InputError("no technique has parameters to fit: " + "; ".join(f"{k}: {v}" for k, v in skipped.items()))
+    results = {}
+    for t, p in plans.items():
+        if echo:
+            echo(f"fitting {t}: {', '.join(f'{d.name} ({d.method})' for d in p.dims)} ...")
+        try:
+            results[t] = execute(p, frame, truth, budget)
+        except ShadowlabError as e:               # e.g. a technique that cannot render this scene
+            if not all_techniques:
+                raise
+            skipped[t] = str(e)
+    if not results:
+        raise InputError("no technique could be fitted: " + "; ".join(f"{k}: {v}" for k, v in skipped.items()))
+    run = {"scene": sc.name, "resolution": list(sc.resolution), "mode": "all" if all_techniques else "one",
+           "method": method, "loss": loss, "budget": budget.__dict__,
+           "reference": {"path": str(_ref_path(sc, base)), "max_std_error": meta.get("max_std_error"),
+                         "seed": meta.get("seed"), "supersampling": int(meta.get("supersampling", 1))},
+           "preset_in": pre.info() if pre else None, "skipped": skipped, "techniques": results,
+           "lights": [l.name for l in sc.lights],
+           "truth_images": {"shaded": truth.shaded, "vis": {n: lt.V for n, lt in truth.lights.items()}}}
+    pname = preset_name or (f"{sc.name}-{technique}-fit" if not all_techniques else f"{sc.name}-fit")
+    run["preset"] = {"name": pname, "values": {t: r["preset_values"] for t, r in results.items()}}
+    if out is not None:
+        run["out"] = str(R.write(Path(out), run))
+    if save_preset is not None:
+        P.save(save_preset, pname, run["preset"]["values"], "fitted by shadowlab fit", _preset_meta(run))
+        run["preset"]["path"] = str(save_preset)
+    return run
+
+
+def _ref_path(sc, base):
+    from ..reference import store
+    return store.path_for(sc.name, sc.resolution, base)
+
+
+def _preset_meta(run) -> dict:
+    meta = {"scene": run["scene"], "resolution": f"{run['resolution'][0]}x{run['resolution'][1]}",
+            "loss": run["loss"]}
+    for t, r in run["techniques"].items():
+        meta[f"{t}_loss_before"] = r["loss_before"]
+        meta[f"{t}_loss_after"] = r["loss_after"]
+    return meta
