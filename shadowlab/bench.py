@@ -13,7 +13,9 @@ Measured (never asserted in tests):
 * filtered shadow maps (003 ch. 3 tables, as ratios from one run): cost vs kernel size
   (1×1 … 7×7) and vs shadow-map size (512 … 2048) for PCF, VSM, ESM, EVSM;
 * a 50-value sweep of one continuous parameter per technique: kernels compiled after the first
-  value (0 when parameters are opaque) and kernel-cache hits.
+  value (0 when parameters are opaque) and kernel-cache hits;
+* parameter fitting (``shadowlab.fit.goals``): pcss.light_size by Adam vs the grid-search optimum
+  and the grid of equal final loss.
 """
 
 from __future__ import annotations
@@ -264,12 +266,25 @@ def _markdown(res: dict) -> str:
         for n, d in sw.items():
             lines.append(f"| {n} | `{d['param']}` | {d['values']} | [{d['range'][0]:.4g}, {d['range'][1]:.4g}] | "
                          f"{d['kernels_launched']} | {d['kernels_compiled_after_first']} | {d['cache_hits']} |")
+    if res.get("fit"):
+        from .fit.goals import markdown as fit_markdown
+        lines += fit_markdown(res["fit"])
+    if res.get("sdf"):
+        lines += ["", f"SDF soft shadows (004 ch. 6): see `{Path(res['sdf']).name}` (`shadowlab bench --only sdf`)."]
     return "\n".join(lines) + "\n"
 
 
-def run(out: Path, quick: bool = False) -> Path:
-    """Run every benchmark; write ``out/bench.json`` and ``out/bench.md``; return the .md path."""
+def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
+    """Run every benchmark; write ``out/bench.json`` and ``out/bench.md``; return the .md path.
+    ``only="sdf"``: just the SDF soft-shadow bench (:mod:`shadowlab.sdf.bench`: ``out/sdf.json``,
+    ``out/sdf.md``), which the full run also writes."""
     import datetime
+    from .sdf.bench import run as sdf_bench
+    if only is not None and only != "sdf":
+        from .errors import InputError
+        raise InputError(f"--only {only!r}: expected sdf (or no --only for every benchmark)")
+    if only == "sdf":
+        return sdf_bench(Path(out), quick=quick)
     backend.init()
     res = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": backend.machine_info(),
            "quick": quick}
@@ -278,6 +293,9 @@ def run(out: Path, quick: bool = False) -> Path:
     res["filters"] = bench_filters(res=128 if quick else 256, map_sizes=(256, 512) if quick else (512, 1024, 2048),
                                    kernels=(1, 3) if quick else (1, 3, 5, 7), repeats=2 if quick else 5)
     res["sweep"] = bench_sweep(values=5 if quick else 50)
+    from .fit.goals import measure as bench_fit
+    res["fit"] = bench_fit(quick)  # pcss.light_size: Adam vs grid search (the fitting goals)
+    res["sdf"] = str(sdf_bench(Path(out), quick=quick))  # 004 ch. 6: written to sdf.json / sdf.md
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "bench.json", res)

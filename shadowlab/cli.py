@@ -84,11 +84,12 @@ def references():
                    f"seed {m.get('seed')}  {r['path']}")
 
 
-def _compare(scene, techs, sets, out, resolution, variant):
+def _compare(scene, techs, sets, out, resolution, variant, preset=None):
     from .pipeline import compare as cmp, parse_resolution
     from .report import summary_table
     _init(variant)
-    run = cmp(scene, techs, sets, Path(out) if out else None, parse_resolution(resolution))
+    run = cmp(scene, techs, sets, Path(out) if out else None, parse_resolution(resolution),
+              params=preset.values if preset else None, preset=preset.info() if preset else None)
     typer.echo(summary_table(run))
     if out:
         typer.echo(f"report: {Path(out) / 'index.html'}")
@@ -97,14 +98,20 @@ def _compare(scene, techs, sets, out, resolution, variant):
 
 @app.command()
 def compare(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
-            techniques_: str = typer.Option("hard,pcf", "--techniques", "-t", help="Comma-separated technique names."),
+            techniques_: Optional[str] = typer.Option(None, "--techniques", "-t", help="Comma-separated technique "
+                                                      "names (default: hard,pcf, or the preset's techniques)."),
             set_: List[str] = typer.Option([], "--set", help="TECHNIQUE.PARAM=VALUE, repeatable."),
+            preset: Optional[str] = typer.Option(None, "--preset", help="Preset file (TOML/JSON, e.g. written by "
+                                                 "`shadowlab fit`): {technique: {param: value}}; --set overrides it."),
             out: Optional[str] = typer.Option(None, "--out", "-o", help="Report directory."),
             resolution: Optional[str] = typer.Option(None, "--resolution", "-r"),
             variant: Optional[str] = VariantOpt):
     """Compare techniques with the ground truth; write index.html, summary.md, metrics.json."""
+    from .fit.preset import load as load_preset
     out = out or f"reports/{Path(scene).stem}"
-    _compare(scene, _split(techniques_), set_, out, resolution, variant)
+    pre = load_preset(preset) if preset else None
+    techs = _split(techniques_) if techniques_ is not None else list(pre.values) if pre else ["hard", "pcf"]
+    _compare(scene, techs, set_, out, resolution, variant, pre)
 
 
 @app.command()
@@ -115,13 +122,124 @@ def demo(out: str = typer.Option("reports/demo", "--out", "-o"), variant: Option
 
 
 @app.command()
+def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
+        technique: Optional[str] = typer.Option(None, "--technique", "-t", help="The technique to fit."),
+        params: Optional[str] = typer.Option(None, "--params", "-p", help="Comma-separated parameters to fit "
+                                             "(default: the differentiable ones; hard: biases; pcf: kernel, softness)."),
+        method: str = typer.Option("auto", "--method", help="auto | adam | golden | grid (auto: Adam on the "
+                                   "differentiable parameters, derivative-free search on the others)."),
+        loss: str = typer.Option("rmse_penumbra", "--loss", help="rmse_penumbra | rmse | flip."),
+        all_: bool = typer.Option(False, "--all", help="Fit every technique's default parameters; one table."),
+        set_: List[str] = typer.Option([], "--set", help="TECHNIQUE.PARAM=VALUE: fixed values and start values."),
+        preset: Optional[str] = typer.Option(None, "--preset", help="Start from a preset file (--set overrides it)."),
+        range_: List[str] = typer.Option([], "--range", help="[TECHNIQUE.]PARAM=LO:HI: the window searched."),
+        steps: int = typer.Option(25, "--steps", help="Adam steps."),
+        lr: float = typer.Option(0.1, "--lr", help="Adam learning rate, as a fraction of the window."),
+        evals: int = typer.Option(20, "--evals", help="Evaluations per 1-D golden-section search."),
+        grid_points: int = typer.Option(21, "--grid-points", help="Grid points per parameter (--method grid)."),
+        rounds: int = typer.Option(0, "--rounds", help="Coordinate rounds over the parameters (0: automatic)."),
+        out: Optional[str] = typer.Option(None, "--out", "-o", help="Report directory (default reports/fit/SCENE-TECHNIQUE)."),
+        save_preset: Optional[str] = typer.Option(None, "--save-preset", help="Also write the fitted preset to this file."),
+        preset_name: Optional[str] = typer.Option(None, "--preset-name", help="Name of the saved preset."),
+        resolution: Optional[str] = typer.Option(None, "--resolution", "-r"),
+        variant: Optional[str] = VariantOpt):
+    """Fit technique parameters to the ground truth; write DIR/fit.json, index.html, summary.md, preset.toml."""
+    from .fit import Budget, fit as run_fit
+    from .fit.report import summary_table as fit_table
+    from .pipeline import parse_resolution
+    _init(variant)
+    out = out or f"reports/fit/{Path(scene).stem}-{'all' if all_ else technique or 'fit'}"
+    run = run_fit(scene, technique, params=params, method=method, loss=loss, all_techniques=all_, sets=set_,
+                  preset=preset, ranges=range_, budget=Budget(steps, lr, evals, grid_points, rounds), out=out,
+                  save_preset=save_preset, preset_name=preset_name, resolution=parse_resolution(resolution),
+                  echo=lambda m: typer.echo(m, err=True))
+    typer.echo(fit_table(run))
+    typer.echo(f"report: {run['out']}")
+    if save_preset:
+        typer.echo(f"preset: {save_preset}")
+
+
+@app.command()
+def export(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
+           out: str = typer.Option(..., "--out", "-o", help="Directory to write (scene.xml, meshes/, camera.json, ...)."),
+           resolution: Optional[str] = typer.Option(None, "--resolution", "-r", help="WxH (default: the scene's)."),
+           segments: int = typer.Option(64, "--segments", help="Tessellation of spheres, cylinders and disks."),
+           spp: int = typer.Option(64, "--spp", help="Default samples per pixel written into scene.xml."),
+           force: bool = typer.Option(False, "--force", help="Replace the exported files in an existing directory."),
+           variant: Optional[str] = VariantOpt):
+    """Export a scene for another renderer: Mitsuba XML, PLY meshes, camera.json, lights.json."""
+    from .exchange.export import export_scene
+    from .pipeline import parse_resolution
+    _init(variant)
+    m = export_scene(scene, Path(out), resolution=parse_resolution(resolution), segments=segments, spp=spp,
+                     force=force)
+    W, H = m["resolution"]
+    typer.echo(f"exported {m['scene']} ({W}x{H}, scene hash {m['scene_hash'][:12]}) to {out}: scene.xml, "
+               f"scene_mesh.xml, camera.json, lights.json, scene.json, {len(m['files']['meshes'])} PLY meshes"
+               + (f", {len(m['files']['textures'])} textures" if m["files"]["textures"] else ""))
+
+
+@app.command()
+def ingest(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
+           image: str = typer.Argument(..., help="The EXR image rendered elsewhere."),
+           channel: List[str] = typer.Option([], "--channel", "-c", help="A light's visibility channel, NAME or "
+                                             "NAME=LIGHT; repeatable."),
+           shaded: bool = typer.Option(False, "--shaded", help="The image is RGB direct light (R,G,B or LAYER.R|G|B)."),
+           layer: Optional[str] = typer.Option(None, "--layer", help="With --shaded: the RGB layer's name."),
+           against: Optional[str] = typer.Option(None, "--against", help="Truth compared with: V (default) or A "
+                                                 "for --channel; shaded (default) or mitsuba for --shaded."),
+           resolution: Optional[str] = typer.Option(None, "--resolution", "-r", help="The reference's WxH "
+                                                    "(default: the image's size)."),
+           out: Optional[str] = typer.Option(None, "--out", "-o", help="Report directory (default "
+                                             "reports/ingest/SCENE)."),
+           gate: Optional[str] = typer.Option(None, "--gate", help="Gate file to run on the image (exit 1 on failure)."),
+           variant: Optional[str] = VariantOpt):
+    """Compare an image rendered elsewhere with the stored ground truth; write a report."""
+    from .exchange.ingest import ingest as run_ingest
+    from .pipeline import parse_resolution
+    from .report import summary_table
+    out = out or f"reports/ingest/{Path(scene).stem}"
+    run = run_ingest(scene, image, channels=channel, shaded=shaded, layer=layer, against=against,
+                     resolution=parse_resolution(resolution), out=Path(out), gate=gate)
+    typer.echo(summary_table(run))
+    for light, d in next(iter(run["techniques"].values()))["per_light"].items():
+        typer.echo(f"{light}: " + ", ".join(f"{k} {v:.4g}" for k, v in d.items()))
+    for note in run["ingest"]["notes"]:
+        typer.echo(f"note: {note}")
+    typer.echo(f"report: {Path(out) / 'index.html'}")
+    g = run.get("gate")
+    if g is not None:
+        for line in g["lines"]:
+            typer.echo(line)
+        if not g["passed"]:
+            from .errors import GateFailure
+            raise GateFailure(f"gate failed on {image}: {', '.join(g['failed'])}")
+
+
+@app.command()
+def gate(gatefile: str = typer.Argument(..., help="Gate file (TOML), e.g. references/gates.toml."),
+         out: str = typer.Option("reports/gate", "--out", "-o", help="Directory for junit.xml and index.html."),
+         only: Optional[str] = typer.Option(None, "--only", help="Comma-separated gate names to run."),
+         variant: Optional[str] = VariantOpt):
+    """Gate candidates against stored references; exit 0 pass, 1 a gate failed, 2 bad input."""
+    from .errors import GateFailure
+    from .gate.runner import run_gate_file
+    code, results = run_gate_file(gatefile, out_dir=Path(out), only=_split(only) if only else None, variant=variant,
+                                  echo=typer.echo)
+    if code:
+        raise GateFailure(f"{sum(not r.passed for r in results)} gate(s) failed: "
+                          f"{', '.join(r.name for r in results if not r.passed)}; see {Path(out) / 'index.html'}")
+
+
+@app.command()
 def bench(out: str = typer.Option("reports/bench", "--out", "-o"),
           quick: bool = typer.Option(False, "--quick", help="Small sizes (a smoke run, not for figures)."),
+          only: Optional[str] = typer.Option(None, "--only", help="Run one part: sdf (SDF soft shadows, sdf.md)."),
           variant: Optional[str] = VariantOpt):
     """Measure ground-truth throughput and technique compile / warm run times."""
     from .bench import run as run_bench
     _init(variant)
-    path_md = run_bench(Path(out), quick=quick)
+    path_md = run_bench(Path(out), quick=quick, only=only)
     typer.echo(Path(path_md).read_text())
 
 
