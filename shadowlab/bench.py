@@ -29,7 +29,8 @@ from . import backend
 from .io.jsonio import write_json_atomic
 
 
-def _timed(fn, repeats=1):
+def timed(fn, repeats=1):
+    """Run ``fn`` ``repeats`` times between ``dr.sync_thread()`` calls; (last result, seconds each)."""
     import drjit as dr
     ts = []
     out = None
@@ -68,7 +69,7 @@ def bench_truth(scene="contact", res=512, target_se=0.005, uniform_res=128, unif
     visibility(small, light, target_se=target_se)
     sc = load(scene, resolution=(res, res))
     frame = make_frame(sc)
-    lt, ts = _timed(lambda: visibility(frame, light, target_se=target_se))
+    lt, ts = timed(lambda: visibility(frame, light, target_se=target_se))
     m = frame.gbuffer.to_image(frame.gbuffer.mask.reshape(-1).astype(np.float32)) > 0.5
     adaptive = {"resolution": [res, res], "time_s": ts[0], "shadow_rays": lt.rays,
                 "rays_per_s": lt.rays / ts[0], "rays_per_pixel": lt.rays / float(m.sum()),
@@ -120,9 +121,9 @@ def bench_techniques(scene="contact", res=256, repeats=5):
         dr.sync_thread()
         dr.kernel_history()  # clear
         dr.set_flag(dr.JitFlag.KernelHistory, True)
-        _, first = _timed(lambda: dr.eval(*t.render(frame, p).visibility.values()))
+        _, first = timed(lambda: dr.eval(*t.render(frame, p).visibility.values()))
         k = _kernels()
-        _, warm = _timed(lambda: dr.eval(*t.render(frame, p).visibility.values()), repeats)
+        _, warm = timed(lambda: dr.eval(*t.render(frame, p).visibility.values()), repeats)
         kw = _kernels()
         dr.set_flag(dr.JitFlag.KernelHistory, False)
         out[n] = {"params": p, "first_run_s": first[0], "warm_run_s": float(np.median(warm)),
@@ -147,8 +148,8 @@ def _warm_time(t, frame, p, repeats):
     for l in frame.lights:  # shared input, not the technique's cost
         frame.light_view(l.name, res=p.get("resolution") or None, bits=p.get("depth_bits") or None,
                          backface=bool(p.get("backface", False)))
-    _, first = _timed(lambda: _render_once(t, frame, p))
-    _, warm = _timed(lambda: _render_once(t, frame, p), repeats)
+    _, first = timed(lambda: _render_once(t, frame, p))
+    _, warm = timed(lambda: _render_once(t, frame, p), repeats)
     return first[0], float(np.median(warm))
 
 

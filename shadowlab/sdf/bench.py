@@ -93,16 +93,10 @@ def _pass(frame, variant, direction, eps, i_max=I_MAX, scale=1.0):
 
 
 def _timed(fn, repeats):
-    import drjit as dr
-    fn()  # compile / warm up
-    ts = []
-    out = None
-    for _ in range(repeats):
-        dr.sync_thread()
-        t0 = time.perf_counter()
-        out = fn()
-        dr.sync_thread()
-        ts.append(time.perf_counter() - t0)
+    """Median warm time of ``fn`` (one untimed call compiles)."""
+    from ..bench import timed
+    fn()
+    out, ts = timed(fn, repeats)
     return out, float(np.median(ts))
 
 
