@@ -128,7 +128,8 @@ def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a 
                                              "(default: the differentiable ones; hard: biases; pcf: kernel, softness)."),
         method: str = typer.Option("auto", "--method", help="auto | adam | golden | grid (auto: Adam on the "
                                    "differentiable parameters, derivative-free search on the others)."),
-        loss: str = typer.Option("rmse_penumbra", "--loss", help="rmse_penumbra | rmse | flip."),
+        loss: Optional[str] = typer.Option(None, "--loss", help="rmse_penumbra | rmse | flip (default: "
+                                           "rmse_penumbra; rmse for hard, whose biases act outside the penumbra)."),
         all_: bool = typer.Option(False, "--all", help="Fit every technique's default parameters; one table."),
         set_: List[str] = typer.Option([], "--set", help="TECHNIQUE.PARAM=VALUE: fixed values and start values."),
         preset: Optional[str] = typer.Option(None, "--preset", help="Start from a preset file (--set overrides it)."),

@@ -344,3 +344,19 @@ def test_cli_bad_input_exits_2_and_overwrites_nothing(pp, tmp_path, capsys, monk
     rc = _cli("fit", scene, "-t", "pcss", "--out", out)
     assert rc == 2 and "different version" in capsys.readouterr().err
     assert _digest(out) == before and _digest(ROOT / "references" / "parallel_planes") == refs_before
+
+
+def test_hard_biases_are_fitted_on_the_whole_image_by_default(mitsuba_backend):
+    """Acne darkens lit pixels and Peter Panning lights contacts: neither is in the penumbra mask,
+    so ``hard`` is fitted on every lit pixel unless --loss says otherwise; the slope bias then stays
+    on the acne-free side (≥ 1, shadow_map's docstring), where the penumbra loss would drive it
+    negative."""
+    from shadowlab.fit import run as R
+    h = R.fit("sdf_simple", "hard")["techniques"]["hard"]
+    assert h["loss"]["name"] == "rmse"
+    assert h["params"]["slope_scaled_depth_bias"]["fitted"] >= 1.0
+    assert h["loss_after"] <= h["loss_before"]
+    # measured: the penumbra loss gains 0.5 % at slope bias −4, the bottom of its window
+    p = R.fit("sdf_simple", "hard", loss="rmse_penumbra")["techniques"]["hard"]
+    assert p["loss"]["name"] == "rmse_penumbra"
+    assert p["params"]["slope_scaled_depth_bias"]["fitted"] < 0

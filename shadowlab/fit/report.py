@@ -98,7 +98,11 @@ def summary_table(run: dict) -> str:
                      f"{k['compiled']} / {k['loaded_from_disk']} | {r['wall_time_s']:.2f} |")
     for t, why in (run.get("skipped") or {}).items():
         lines.append(f"| {t} | skipped: {why} | | | | | | | | |")
-    lines += ["", f"Loss: {run['techniques'][next(iter(run['techniques']))]['loss']['description']}. "
+    losses = {}
+    for t, r in run["techniques"].items():
+        losses.setdefault(r["loss"]["description"], []).append(t)
+    text = "; ".join(d + (f" ({', '.join(ts)})" if len(losses) > 1 else "") for d, ts in losses.items())
+    lines += ["", f"Loss: {text}. "
               "Evaluations = technique renders of the search (cached points not counted); backward = Dr.Jit "
               "reverse-mode passes (one per Adam step)."]
     return "\n".join(lines) + "\n"
