@@ -30,8 +30,8 @@ _PLY_TYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short":
 
 
 def read_ply(path):
-    """(positions V×3, normals V×3 or None, faces F×3) of a binary little-endian or ASCII PLY
-    with triangle faces."""
+    """(positions V×3, normals V×3 or None, faces F×3) of a binary little-endian PLY with triangle
+    faces, parsed from its own header (property names, types and order)."""
     data = Path(path).read_bytes()
     end = data.index(b"end_header") + len(b"end_header")
     end = data.index(b"\n", end) + 1
@@ -45,47 +45,27 @@ def read_ply(path):
         elif t and t[0] == "property":
             elements[-1]["props"].append(t[1:])
     body = data[end:]
-    out = {}
-    if fmt == "ascii":
-        tokens = body.split()
-        pos = 0
-        for el in elements:
-            rows = []
-            for _ in range(el["count"]):
-                row = []
-                for p in el["props"]:
-                    if p[0] == "list":
-                        n = int(tokens[pos]); pos += 1
-                        row.append([float(x) for x in tokens[pos:pos + n]]); pos += n
-                    else:
-                        row.append(float(tokens[pos])); pos += 1
-                rows.append(row)
-            out[el["name"]] = (el, rows)
-        vel, vrows = out["vertex"]
-        names = [p[-1] for p in vel["props"]]
-        arr = np.array(vrows, np.float64)
-        faces = np.array([r[0] for r in out["face"][1]], np.int64)
-    else:
-        assert fmt == "binary_little_endian", fmt
-        offset = 0
-        cols = {}
-        faces = None
-        for el in elements:
-            if el["name"] == "face":
-                (_, count_t, index_t, _name), = el["props"]
-                dt = np.dtype([("n", "<" + _PLY_TYPES[count_t]), ("i", "<" + _PLY_TYPES[index_t], (3,))])
-                f = np.frombuffer(body, dt, el["count"], offset)
-                assert (f["n"] == 3).all(), "triangles only"
-                faces = f["i"].astype(np.int64)
-                offset += dt.itemsize * el["count"]
-            else:
-                dt = np.dtype([(p[-1], "<" + _PLY_TYPES[p[0]]) for p in el["props"]])
-                v = np.frombuffer(body, dt, el["count"], offset)
-                offset += dt.itemsize * el["count"]
-                if el["name"] == "vertex":
-                    cols = {n: v[n].astype(np.float64) for n in dt.names}
-        names = list(cols)
-        arr = np.stack([cols[n] for n in names], 1)
+    assert fmt == "binary_little_endian", fmt  # what the export writes (scene.json's convention)
+    offset = 0
+    cols = {}
+    faces = None
+    for el in elements:
+        if el["name"] == "face":
+            (_, count_t, index_t, _name), = el["props"]
+            dt = np.dtype([("n", "<" + _PLY_TYPES[count_t]), ("i", "<" + _PLY_TYPES[index_t], (3,))])
+            f = np.frombuffer(body, dt, el["count"], offset)
+            assert (f["n"] == 3).all(), "triangles only"
+            faces = f["i"].astype(np.int64)
+            offset += dt.itemsize * el["count"]
+        else:
+            dt = np.dtype([(p[-1], "<" + _PLY_TYPES[p[0]]) for p in el["props"]])
+            v = np.frombuffer(body, dt, el["count"], offset)
+            offset += dt.itemsize * el["count"]
+            if el["name"] == "vertex":
+                cols = {n: v[n].astype(np.float64) for n in dt.names}
+    assert offset == len(body), "the header does not describe the body"
+    names = list(cols)
+    arr = np.stack([cols[n] for n in names], 1)
     ix = {n: i for i, n in enumerate(names)}
     P = arr[:, [ix["x"], ix["y"], ix["z"]]]
     N = arr[:, [ix["nx"], ix["ny"], ix["nz"]]] if "nx" in ix else None

@@ -29,7 +29,7 @@ from shadowlab.exchange.mesh import sagitta
 from shadowlab.exchange.ply import read_ply
 
 ROOT = Path(__file__).resolve().parents[1]
-RES = (32, 32)
+RES = (64, 48)  # not square: a swapped aspect ratio, fov axis or W/H shows
 
 
 def _digest(d: Path) -> dict:
@@ -57,7 +57,7 @@ def _camera_rays(sensor, W, H):
     j, i = np.meshgrid(np.arange(H), np.arange(W), indexing="ij")
     uv = mi.Point2f(((i.ravel() + 0.5) / W).astype(np.float32), ((j.ravel() + 0.5) / H).astype(np.float32))
     ray, _ = sensor.sample_ray(0.0, 0.5, uv, mi.Point2f(0.5))
-    return ray, np.asarray(ray.d.numpy()).T, i.ravel(), j.ravel()
+    return ray, np.asarray(ray.o.numpy()).T, np.asarray(ray.d.numpy()).T, i.ravel(), j.ravel()
 
 
 @pytest.mark.parametrize("name", ["contact", "two_lights", "parallel_planes"])
@@ -67,7 +67,7 @@ def test_camera_json_reproduces_mitsuba_camera_rays(exported, name):
     W, H = cam["resolution"]
     assert (W, H) == RES and cam["fov_axis"] == "x"
     sc = load(name, resolution=RES)
-    ray, d, i, j = _camera_rays(sc.sensor, W, H)
+    ray, o, d, i, j = _camera_rays(sc.sensor, W, H)
     x, y = 2 * (i + 0.5) / W - 1, 1 - 2 * (j + 0.5) / H
     for key, z0, z1 in (("world_to_clip", 0.0, 0.999), ("opengl", -1.0, 0.999)):
         M = np.array(cam["world_to_clip"] if key == "world_to_clip" else cam["opengl"]["world_to_clip"])
@@ -77,15 +77,43 @@ def test_camera_json_reproduces_mitsuba_camera_rays(exported, name):
             c = np.stack([x, y, np.full_like(x, z), np.ones_like(x)], 1) @ inv.T
             return c[:, :3] / c[:, 3:]
 
-        dd = unproject(z1) - unproject(z0)
+        near = unproject(z0)
+        dd = unproject(z1) - near
         dd /= np.linalg.norm(dd, axis=1, keepdims=True)
         assert np.abs(dd - d).max() < 1e-5, key
-    # world_to_clip = camera_to_clip @ world_to_camera, and camera space looks along +z with +x left
+        # Mitsuba's perspective rays start on the near plane: ndc z = 0 (D3D) / -1 (OpenGL)
+        assert np.abs(near - o).max() < 1e-5, key
+    # the matrices are the products they claim to be
     w2c, P = np.array(cam["world_to_camera"]), np.array(cam["camera_to_clip"])
     assert np.allclose(P @ w2c, cam["world_to_clip"])
+    assert np.allclose(np.linalg.inv(w2c), cam["camera_to_world"], atol=1e-6)
+    gl = cam["opengl"]
+    assert np.allclose(np.array(gl["view_to_clip"]) @ np.array(gl["world_to_view"]), gl["world_to_clip"])
+    # camera space looks along +z, +y up, +x toward the image's left; rigid and right-handed
     fwd = np.array(cam["target"]) - np.array(cam["position"])
-    assert np.allclose((w2c[:3, :3] @ (fwd / np.linalg.norm(fwd))), [0, 0, 1], atol=1e-6)
-    assert np.isclose(np.linalg.det(w2c[:3, :3]), 1.0, atol=1e-5)  # rigid, right-handed
+    fwd /= np.linalg.norm(fwd)
+    assert np.allclose(w2c[:3, :3] @ fwd, [0, 0, 1], atol=1e-6)
+    assert np.isclose(np.linalg.det(w2c[:3, :3]), 1.0, atol=1e-5)
+    assert np.allclose(w2c[:3, :3] @ cam["position"] + w2c[:3, 3], 0, atol=1e-5)
+    dc = d @ w2c[:3, :3].T  # ray directions in camera space
+    row = j == H // 2
+    assert (np.diff(dc[row, 0]) < 0).all()  # moving right in the image is moving to camera -x
+    col = i == W // 2
+    assert (np.diff(dc[col, 1]) < 0).all()  # moving down the image is moving to camera -y
+    # OpenGL view space: looks along -z, x right, y up (a rotation of Mitsuba's camera space)
+    w2v = np.array(gl["world_to_view"])
+    assert np.allclose(w2v[:3, :3] @ fwd, [0, 0, -1], atol=1e-6)
+    assert np.isclose(np.linalg.det(w2v[:3, :3]), 1.0, atol=1e-5)
+    assert (np.diff((d @ w2v[:3, :3].T)[row, 0]) > 0).all()
+    # the field of view is horizontal; the vertical one follows from the aspect ratio
+    tx = math.tan(math.radians(cam["fov_deg"]) / 2)
+    assert math.tan(math.radians(cam["fov_y_deg"]) / 2) == pytest.approx(tx * H / W)
+    edge = np.abs(dc[row, 0] / dc[row, 2]).max()  # the outermost pixel centres: (1 - 1/W) of the half-width
+    assert edge == pytest.approx(tx * (1 - 1 / W), rel=1e-5)
+    # D3D depth: 0 on the near plane, 1 on the far plane; w = camera-space z
+    for z, ndc_z in ((cam["near_clip"], 0.0), (cam["far_clip"], 1.0)):
+        c = P @ [0.3 * z, -0.2 * z, z, 1]
+        assert c[3] == pytest.approx(z) and c[2] / c[3] == pytest.approx(ndc_z, abs=1e-9)
     # the hit points project onto the pixel centres, with depth in [0, 1]
     si = sc.mi_scene.ray_intersect(ray)
     hit = np.asarray(si.is_valid().numpy())
@@ -124,7 +152,7 @@ def test_scene_mesh_xml_sees_the_same_surfaces(exported, name):
     sc = load(name, resolution=RES)
     mesh = mi.load_file(str(exported[name] / "scene_mesh.xml"), optimize=False)
     manifest = json.loads((exported[name] / "scene.json").read_text())
-    ray, _, _, _ = _camera_rays(sc.sensor, *RES)
+    ray, _, _, _, _ = _camera_rays(sc.sensor, *RES)
     a, b = sc.mi_scene.ray_intersect(ray), mesh.ray_intersect(ray)
     ha, hb = np.asarray(a.is_valid().numpy()), np.asarray(b.is_valid().numpy())
     assert (ha == hb).mean() >= 0.98  # silhouettes of curved shapes may differ by a pixel
@@ -251,8 +279,14 @@ radius = 0.2
     toml.write_text(text)
     out = tmp_path / "kinds"
     m = export_scene(str(toml), out)
-    lights = {l["name"]: l for l in json.loads((out / "lights.json").read_text())["lights"]}
+    lj = json.loads((out / "lights.json").read_text())
+    lights = {l["name"]: l for l in lj["lights"]}
     r = lights["r"]
+    # physical_size: metres for area lights, radians for the sun; the file says which
+    assert r["physical_size"] == pytest.approx(math.sqrt(0.32)) and lights["d"]["physical_size"] == pytest.approx(0.6)
+    assert lights["sun"]["physical_size"] == pytest.approx(math.radians(2.0)) and lights["p"]["physical_size"] == 0
+    assert "RADIANS" in lj["convention"]["physical_size"]
+    assert {"ply", "albedo", "two_sided"} <= set(m["convention"])
     assert r["size"] == {"width": 0.8, "height": 0.4} and r["area_m2"] == pytest.approx(0.32)
     L = 100 / (math.pi * 0.32)
     assert r["emission"]["quantity"] == "radiance" and r["emission"]["value"] == pytest.approx(L)

@@ -87,6 +87,22 @@ def test_a_failing_gate_never_touches_the_baseline(suite, monkeypatch):
     assert (_sha(exr), _sha(exr.with_suffix(".json"))) == before
 
 
+def test_update_writes_nothing_for_a_test_that_fails(suite):
+    """--shadowlab-update writes a test's baselines only once the test has passed: not when it fails
+    after the call, nor when a later call of the same test has bad input; a name is written once."""
+    _test(suite, "def test_a(shadowlab_gate):\n    shadowlab_gate(image(), 'disc')\n    assert False, 'later'\n"
+                 "def test_b(shadowlab_gate):\n    shadowlab_gate(image(), 'ok')\n"
+                 "    shadowlab_gate(image(nan=True), 'bad')\n"
+                 "def test_c(shadowlab_gate):\n    shadowlab_gate(image(), 'dup')\n    shadowlab_gate(image(), 'dup')\n"
+                 "def test_d(shadowlab_gate):\n    shadowlab_gate(image(), 'good')\n")
+    res = suite.runpytest_subprocess("--shadowlab-update")
+    res.assert_outcomes(failed=3, passed=1)
+    res.stdout.fnmatch_lines(["*baseline 'dup' is gated twice*"])
+    res.stdout.fnmatch_lines(["*shadowlab: wrote 1 baseline(s)*", "*baselines/good.exr",
+                              "*shadowlab: 3 baseline(s) NOT written: their test failed*"])
+    assert sorted(p.name for p in (suite.path / "baselines").iterdir()) == ["good.exr", "good.json"]
+
+
 def test_thresholds_budget_and_statistical_with_variance(suite):
     _test(suite, """
 import numpy as np

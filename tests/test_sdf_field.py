@@ -28,9 +28,10 @@ def dist(sdf, pts) -> np.ndarray:
 
 
 def test_examples_in_docstrings_run():
+    from shadowlab.sdf import soft as SO
     from shadowlab.sdf import spec as S
     from shadowlab.sdf import trace as T
-    for mod in (F, T, S):
+    for mod in (F, T, S, SO):
         res = doctest.testmod(mod, extraglobs={"np": np})
         assert res.failed == 0, f"{mod.__name__}: {res.failed} of {res.attempted} examples failed"
     assert doctest.testmod(F).attempted >= 20
@@ -182,6 +183,22 @@ def test_csg_and_nonuniform_scale_are_bounds_of_the_true_distance():
     brute = np.sqrt(((q[:, None] - surf[None]) ** 2).sum(-1)).min(1)
     f = dist(diff, q)
     assert np.all(np.abs(f) <= brute + 1e-5)
+
+
+def test_negative_offset_is_a_bound_that_erodes_corners_by_more_than_d():
+    """004 §6.6, Fig. 6.20: eroding a box by d gives the box with half extents shrunk by d, whose
+    corner lies √3·d inside the original corner; f + d is a bound of its distance (too small off
+    the corner by (√3 − 1)·d), exact off a face."""
+    d = 0.1
+    eroded = F.Offset(F.Box((0.5, 0.4, 0.3)), -d)
+    assert not eroded.exact and eroded.convex and F.Offset(F.Box((0.5, 0.4, 0.3)), d).exact
+    truth = F.Box((0.5 - d, 0.4 - d, 0.3 - d))
+    rng = np.random.default_rng(6)
+    q = rng.uniform(-2, 2, size=(2000, 3))
+    assert np.all(dist(eroded, q) <= dist(truth, q) + 1e-5)
+    corner = np.array([[1.5, 1.4, 1.3]])                      # (1, 1, 1) beyond the original corner
+    assert dist(truth, corner)[0] - dist(eroded, corner)[0] == pytest.approx((math.sqrt(3) - 1) * d, abs=2e-3)
+    assert dist(eroded, [[1.5, 0, 0]])[0] == pytest.approx(dist(truth, [[1.5, 0, 0]])[0], abs=1e-6)
 
 
 def test_transform_matches_mitsuba_rotation_and_keeps_distances_exact():

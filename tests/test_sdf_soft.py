@@ -136,10 +136,17 @@ def test_planar_edge_equals_the_visible_fraction_within_eps(mods, variant, direc
                 assert np.all(m.found.numpy())
 
 
-def test_linearized_is_within_eps_and_base_tracks_tau_more_closely_per_step(mods):
+def test_base_keeps_its_trace_cone_at_least_as_far_below_as_the_linearized_one(mods):
     """Algorithm 4 moves the trace cone e = επ/2 below T in r, Algorithm 3 τ⁻¹(τ(R^T) − ε) below
-    it, which is farther where τ is flat: base needs fewer (costlier) steps for the same ε."""
+    it, which is never closer (τ' ≤ 2/π) and farther where τ is flat: base needs fewer (costlier)
+    steps for the same ε."""
     dr, mi, field, soft = mods
+    r = np.linspace(-1, 1, 4001)
+    for eps in (1 / 10, 1 / 30, 1 / 256):
+        live = soft.tau(r) > eps                         # where the march goes on
+        gap = r[live] - soft.tau_inv(soft.tau(r[live]) - eps)
+        assert np.all(gap >= eps * math.pi / 2 - 1e-6)
+        assert gap[-1] > 1.5 * eps * math.pi / 2        # at R^T = 1, where τ is flat
     sdf = wedge(field, 0.01)
     ks = KS[KS >= 0.02]
     it = {v: march(mods, sdf, ks, v, "A", 1 / 30).iterations.numpy() for v in ("base", "linear")}
@@ -210,17 +217,53 @@ def test_two_occluders_from_opposite_sides_leak_light(mods):
 
 
 def test_thin_occluder_lets_light_through(mods):
-    """004 §6.6 "vékony objektumok": an opaque plate across the whole cone, thinner than the cone's
-    diameter there, blocks everything, yet the axis' distance never drops below −w/2, so the single
-    ray reports τ(−w/(2ρ)). A plate thicker than the cone's diameter gives 0."""
+    """004 §6.6 "vékony objektumok": an opaque plate across the whole cone blocks everything (the
+    Monte-Carlo reference measures 0), yet when it is thinner than the cone's diameter there the
+    axis' distance never drops below −w/2, so the single ray reports τ(−w/(2ρ)): 40–48 % of the
+    light leaks. A plate thicker than the cone's diameter gives 0, as it should."""
     dr, mi, field, soft = mods
     ks = np.array([0.05, 0.1, 0.15])
     rho = 4.5 * ks                                                  # the cone's radius at the plate
-    for w, expect in ((0.02, soft.tau(-0.01 / rho)), (2.0, np.zeros(3))):   # 2ρ ≤ 1.7 < 2
+    p, R = lanes(mods, ks)
+    for w in (0.02, 2.0):                                           # 2ρ ≤ 1.35 < 2
         sdf = field.Box((50.0, 50.0, w / 2), (0.0, 0.0, 4.5))
         v = march(mods, sdf, ks, "linear", "A", 1 / 256).visibility.numpy()
-        assert np.abs(v - expect).max() < 0.01, (w, v, expect)
-    assert np.all(soft.tau(-0.01 / rho) > 0.4)                      # 40–48 % of the light leaks
+        mc = soft.mc_cone_visibility(sdf, p, mi.Vector3f(0, 0, 1), ((0, 0, D_LIGHT), 0.0), 256, radius=R,
+                                     clearance=0.0, i_max=20000, measure="disk").numpy()
+        assert np.all(mc == 0.0), (w, mc)
+        leak = v - mc
+        if w < 2 * rho.min():
+            assert np.all(leak > 0.4), (w, leak)
+            assert np.abs(v - soft.tau(-w / 2 / rho)).max() < 0.01, (w, v)
+        else:
+            assert np.all(leak <= 1 / 256 + 1e-4), (w, leak)
+
+
+def test_negative_offset_spreads_an_edges_penumbra_into_the_umbra(mods):
+    """004 §6.6 "ofszet": a square prism seen across one of its edges (faces at ±45° to the axis)
+    projects to a half-plane, so the truth is τ(b/k) on both sides (Monte Carlo measures it).
+    Outside the prism the single ray finds the edge at ϱ = b/k: exact. Inside, the axis is at
+    most |b|·z/√2 deep (the eroded edge lies √2·|d| back, Fig. 6.20), so it reports τ(b/(√2·k)):
+    the inner penumbra comes out too bright."""
+    dr, mi, field, soft = mods
+    z_e, a = 4.5, 0.5                                    # the edge's depth; vertex to centre of the prism
+    ks = np.array([0.02, 0.025, 0.033, 0.05])
+    p, R = lanes(mods, ks)
+    for b in (0.01, -0.01):
+        x_e = b * z_e                                    # the edge is the line x = x_e, z = z_e along y
+        prism = field.transform(field.Box((a / math.sqrt(2), 50.0, a / math.sqrt(2))), translate=(x_e + a, 0, z_e),
+                                rotate=[(0, 1, 0, 45)])
+        v = march(mods, prism, ks, "linear", "A", 1 / 256).visibility.numpy()
+        mc = soft.mc_cone_visibility(prism, p, mi.Vector3f(0, 0, 1), ((0, 0, D_LIGHT), 0.0), 2048, radius=R,
+                                     clearance=0.0, i_max=20000, measure="disk").numpy()
+        assert np.abs(mc - soft.tau(b / ks)).max() < 0.02, (b, mc)
+        if b > 0:
+            assert np.abs(v - soft.tau(b / ks)).max() <= 1 / 256 + 1e-3, (b, v)
+        else:
+            assert np.abs(v - soft.tau(b / (math.sqrt(2) * ks))).max() <= 1 / 256 + 1e-3, (b, v)
+            excess = v - mc                              # measured 0.035 … 0.085 too bright
+            assert np.all(excess > 0.03), (v, mc)
+            assert np.abs(excess - (soft.tau(b / (math.sqrt(2) * ks)) - soft.tau(b / ks))).max() < 0.02
 
 
 def test_pointed_corner_is_too_dark(mods):
@@ -300,6 +343,10 @@ def test_monte_carlo_cosine_weight_is_the_ratio_of_eq_5_1(mods):
     exact = (dens * cosw * inside * (X < 0)).sum() / (dens * cosw * inside).sum()
     assert abs(float(v_plain.numpy()[0]) - 0.5) < 0.01
     assert abs(float(v_cos.numpy()[0]) - exact) < 0.01 and exact < 0.47
+    # both measures from one set of rays (the SDF reference's A and V) are the two separate estimates
+    both = soft.mc_cone_visibility(sdf, p, nrm, ((0, 0, D_LIGHT), R), 4096, clearance=0.0, i_max=20000,
+                                   cosine="both")
+    assert both[0].numpy()[0] == v_plain.numpy()[0] and both[1].numpy()[0] == v_cos.numpy()[0]
 
 
 def test_anti_aliased_hard_shadow_is_a_ramp_of_the_surface_sphere(mods):
@@ -323,11 +370,12 @@ def test_anti_aliased_hard_shadow_is_a_ramp_of_the_surface_sphere(mods):
 
 
 def test_hard_shadow_is_binary_and_matches_the_plate(mods):
+    from shadowlab.sdf.trace import hard_visibility
     dr, mi, field, soft = mods
     sdf = field.Box((50.0, 50.0, 0.25), (50.0, 0.0, 4.5))            # occluder x ≥ 0
     xs = np.linspace(-1, 1, 101)
     p = mi.Vector3f(mi.Float(xs.astype(np.float32)), 0.0, 0.0)
-    v, its = soft.hard(sdf, p, (0.0, 0.0, D_LIGHT))
+    v, its = hard_visibility(sdf, p, None, (0.0, 0.0, D_LIGHT), return_iterations=True)
     # the ray from (x, 0, 0) to (0, 0, 10) crosses the plate at x·(1 − z/10): blocked iff x ≥ 0
     assert np.array_equal(v.numpy(), np.where(xs >= 0, 0.0, 1.0))
     assert its.numpy().max() < 256

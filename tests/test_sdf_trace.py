@@ -260,27 +260,17 @@ def test_mandelbulb_frame_uses_the_cone_traced_gbuffer_and_refuses_shadow_maps()
 
 
 def test_mandelbulb_reference_is_not_a_mitsuba_truth(tmp_path):
-    """`shadowlab reference mandelbulb`: the Monte-Carlo cone reference when SDF-B's
-    mc_cone_visibility exists (its meta.json says the truth is not Mitsuba's), otherwise a clear
-    input error that writes nothing."""
+    """`shadowlab reference mandelbulb`: the Monte-Carlo cone reference (its meta.json says the
+    truth is not Mitsuba's); A and V come from the same rays (one set per light)."""
     from shadowlab import pipeline
     from shadowlab.sdf import reference as sref
-    try:
-        sref.mc_cone_function()
-        available = True
-    except InputError:
-        available = False
-    if not available:
-        with pytest.raises(InputError, match="Monte-Carlo cone reference"):
-            pipeline.reference("mandelbulb", (32, 32), base=tmp_path, progress=False)
-        assert not (tmp_path / "mandelbulb").exists()
-        return
     path, meta = pipeline.reference("mandelbulb", (32, 32), base=tmp_path, progress=False)
     assert meta["truth"] == sref.TRUTH_KIND and "not a Mitsuba truth" in meta["not_mitsuba_truth"]
     from shadowlab.reference import store
     from shadowlab.scene.spec import load_spec, resolve
     truth, _ = store.load(load_spec(resolve("mandelbulb")).with_resolution(32, 32), base=tmp_path)
     assert truth.mitsuba is None
+    assert meta["samples"]["shadow_rays"] == truth.mask.sum() * meta["samples"]["mc_cone_samples"]
     V = truth.lights["sun"].V[truth.mask]
     assert (V < 0.5).any() and (V > 0.5).any() and np.all((V >= 0) & (V <= 1))
 

@@ -61,11 +61,11 @@ def single_ray(case, eps, variant="linear", i_max=4096, residual=True):
     import drjit as dr
     import mitsuba as mi
     from shadowlab.sdf import soft
-    from shadowlab.techniques.sdf_shadows import SURFACE_RADIUS, sdf_bbox, surface_points
+    from shadowlab.techniques.sdf_shadows import SURFACE_RADIUS, surface_points
     fr = case["frame"]
     o, R0 = surface_points(fr, SURFACE_RADIUS.default)
     c, R = soft.light_sphere(case["scene"], case["light"])
-    cone = soft.make_cone(o, R0, c, dr.opaque(mi.Float, R), "A", bbox=sdf_bbox(fr.sdf))
+    cone = soft.make_cone(o, R0, c, dr.opaque(mi.Float, R), "A", bbox=soft.bounds(fr.sdf))
     m = soft.march(fr.sdf, cone, variant, eps=eps, i_max=i_max)
     res = fr.image(soft.plane_residual(fr.sdf, m)) if residual else None
     return fr.image(m.visibility), res

@@ -65,6 +65,10 @@ CAMERA_CONVENTION = {
               "ndc = (2(i + 0.5)/W - 1, 1 - 2(j + 0.5)/H), film uv = ((i + 0.5)/W, (j + 0.5)/H); "
               "the ground truth is evaluated at these centres",
     "opengl": "world_to_view: x right, y up, looking along -z; view_to_clip: gluPerspective, ndc.z -1..1",
+    "vectors": "position, target: world points (m); up: as the scene file gives it; up_used: the camera's actual +y "
+               "axis in world space (up made orthogonal to forward); forward: unit view direction (camera +z)",
+    "fov": "fov_deg: full horizontal field of view (fov_axis x, edge to edge of the image); fov_y_deg: the full "
+           "vertical one, tan(fov_y/2) = tan(fov/2) H / W; square pixels, no lens shift",
 }
 
 LIGHT_CONVENTION = {
@@ -76,6 +80,27 @@ LIGHT_CONVENTION = {
                 "in z = 0, sphere of radius 1 at the origin",
     "units": "metres, watts; radiance W m^-2 sr^-1, intensity W sr^-1, irradiance W m^-2, per RGB channel "
              "(= color x the scalar value)",
+    "position": "pose origin in world space (m): the light's centre; for a directional light with an angular size "
+                "the centre of its far-away disk, for a delta directional light (0, 0, 0) (only direction matters)",
+    "direction": "unit world-space vector the light emits toward (pose +z); null for sphere and point lights",
+    "physical_size": "the light's size as one number, what a technique's light_size starts from: rect sqrt(width x "
+                     "height) in metres, disk / sphere / point / spot 2 x radius in metres, directional the angular "
+                     "diameter in RADIANS; 0 = a delta light",
+    "ply": "the emitting geometry (area lights only), world space, triangles wound counter-clockwise around the "
+           "emitting side's normal; null for delta lights",
+}
+
+SCENE_CONVENTION = {
+    "units": "metres; world right-handed (the built-in scenes have +y up)",
+    "ply": "binary little-endian PLY, world space: float x y z, unit shading normal nx ny nz (smooth on curved "
+           "surfaces, flat on cubes and loaded meshes), float u v = Mitsuba's uv of the primitive "
+           "(rectangle ((x+1)/2, (y+1)/2), disk (r, phi/2pi), sphere (phi/2pi, theta/pi), cylinder (phi/2pi, z)); "
+           "faces are triangles wound counter-clockwise seen from the side the normal points to "
+           "(cross(v1 - v0, v2 - v0) is the front geometric normal)",
+    "albedo": "linear RGB reflectance of a Lambertian (diffuse) BSDF: outgoing radiance = albedo / pi x irradiance",
+    "two_sided": "true: both sides reflect with the same albedo; false: the back side (against the normal) is black",
+    "alpha": "opacity PNG looked up at the PLY's uv, nearest texel, PNG row 0 (top) at v = 0, clamped; 0 = the surface is "
+             "not there (neither seen nor casting a shadow), 255 = opaque",
 }
 
 
@@ -85,13 +110,16 @@ def _rows(M) -> list:
 
 def camera_info(scene) -> dict:
     """camera.json of a built :class:`shadowlab.scene.Scene` (its Mitsuba sensor is the truth's camera)."""
+    from ..scene.build import sensor_dict
     cam = scene.spec.camera
     W, H = (int(x) for x in cam.resolution)
     c2w = matrix_of(scene.sensor.world_transform())
     w2c = np.linalg.inv(c2w)
-    near, far = 1e-3, 1e5  # shadowlab.scene.build.sensor_dict
+    sd = sensor_dict(cam)  # the truth's camera: its clip planes and field of view
+    near, far = float(sd["near_clip"]), float(sd["far_clip"])
+    assert sd["fov_axis"] == "x"
     aspect = W / H
-    tx = math.tan(math.radians(cam.fov) / 2)
+    tx = math.tan(math.radians(sd["fov"]) / 2)
     ty = tx / aspect
     P = np.array([[-1 / tx, 0, 0, 0],
                   [0, 1 / ty, 0, 0],
@@ -112,7 +140,7 @@ def camera_info(scene) -> dict:
         "up_used": up_used,
         "forward": [float(x) for x in c2w[:3, 2]],
         "fov_axis": "x",
-        "fov_deg": float(cam.fov),
+        "fov_deg": float(sd["fov"]),
         "fov_y_deg": math.degrees(2 * math.atan(ty)),
         "resolution": [W, H],
         "aspect": aspect,
@@ -334,7 +362,7 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
             return textures[digest]
 
         mesh_files, shapes_meta = {}, []
-        _, shape_d, light_d = _scene_dicts(sc, spp, None, save_bitmap)
+        exact_d, shape_d, light_d = _scene_dicts(sc, spp, None, save_bitmap)
         for s in spec.shapes:
             parts = [triangulate(dd, segments) for dd in shape_d[s.name].values()]
             P, N, UV, F, off = [], [], [], [], 0
@@ -368,7 +396,7 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
 
         W, H = spec.camera.resolution
         defaults = {"spp": spp, "resx": W, "resy": H}
-        xml_exact = dict_to_xml(_scene_dicts(sc, spp, None, save_bitmap)[0], defaults=defaults)
+        xml_exact = dict_to_xml(exact_d, defaults=defaults)
         xml_mesh = dict_to_xml(_scene_dicts(sc, spp, mesh_files, save_bitmap)[0], defaults=defaults)
         (tmp / "scene.xml").write_text(xml_exact, encoding="utf-8")
         (tmp / "scene_mesh.xml").write_text(xml_mesh, encoding="utf-8")
@@ -376,7 +404,7 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
         write_json_atomic(tmp / "camera.json", cam)
         write_json_atomic(tmp / "lights.json", {"convention": LIGHT_CONVENTION, "lights": lights_meta})
         manifest = {
-            "format": "shadowlab-export", "format_version": FORMAT_VERSION,
+            "format": "shadowlab-export", "format_version": FORMAT_VERSION, "convention": SCENE_CONVENTION,
             "scene": spec.name, "scene_hash": spec.digest(), "source": spec.source,
             "description": spec.description, "resolution": [int(W), int(H)],
             "shadowlab": __version__, "mitsuba": mi.MI_VERSION,

@@ -17,8 +17,9 @@ Two kinds of image (DESIGN.md, Reference; README.md, "Exchange with other render
 
 Bad input (exit 2, nothing written): a missing image or channel (the message lists the image's
 channels), an image whose size has no stored reference (the message lists the stored sizes and
-the command that renders one), a stale reference, NaN/Inf (count and first pixel). The truth is
-only read; a report goes to ``--out`` (never into the reference store).
+the command that renders one), a stale reference, NaN/Inf (count and first pixel), a ``--channel``
+with values outside [0, 1] (not a visibility). The truth is only read; a report goes to ``--out``
+(never into the reference store).
 """
 
 from __future__ import annotations
@@ -75,15 +76,24 @@ def _pick_shaded(ch: dict, layer: str | None, image: Path):
 
 
 def _finite(image: Path, what: str, a: np.ndarray) -> None:
-    bad = ~np.isfinite(a)
-    if bad.ndim == 3:
-        bad = bad.any(-1)
+    from ..io.exr import check_finite
+    check_finite(f"{image}: {what}", a)  # count and first pixel (x, y), row 0 at the top
+
+
+VIS_TOL = 1e-3  # how far outside [0, 1] a visibility channel may stray (half-float round-off)
+
+
+def _in_unit_range(image: Path, name: str, a: np.ndarray) -> None:
+    """A visibility is a fraction: values well outside [0, 1] mean the wrong channel (radiance,
+    0..255, depth) was named."""
+    bad = (a < -VIS_TOL) | (a > 1 + VIS_TOL)
     n = int(bad.sum())
     if n:
         y, x = (int(v) for v in np.argwhere(bad)[0])
-        raise InputError(f"{image}: {what} has {n} NaN/Inf pixel{'s' if n != 1 else ''}, the first at "
-                         f"(x={x}, y={y}) (row 0 at the top); write finite values everywhere (e.g. 0 or 1 where "
-                         "nothing is shaded) and ingest again")
+        raise InputError(f"{image}: channel {name!r} is meant to be a light's visibility in [0, 1] but {n} pixel"
+                         f"{'s are' if n != 1 else ' is'} outside it (range {a.min():.4g} .. {a.max():.4g}, the first "
+                         f"at x={x}, y={y}); name the visibility channel, or use --shaded for an RGB image of the "
+                         "direct light")
 
 
 def _extra_stats(x, t, se, valid) -> dict:
@@ -129,7 +139,7 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
     if layer is not None and not shaded:
         raise InputError("--layer picks the RGB layer of --shaded; with --channel name the channel itself")
     if out is not None:
-        o, r = Path(out).resolve(), store.root().resolve()
+        o, r = Path(out).resolve(), (base or store.root()).resolve()
         if o == r or r in o.parents:
             raise InputError(f"--out {out} is inside the reference store {r}; write reports elsewhere "
                              "(e.g. reports/ingest)")
@@ -169,6 +179,7 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
     else:
         for light, (name, a) in picked.items():
             _finite(image, f"channel {name!r}", a)
+            _in_unit_range(image, name, a)
 
     mask = np.asarray(truth.mask, bool)
     lit = {n: mask & (np.asarray(truth.U[n]).sum(-1) > 0) for n in lights}

@@ -51,16 +51,13 @@ def _apply(M, P, N):
     return Pw, Nw
 
 
-def _grid_faces(rows: int, cols: int, flip: bool = False) -> np.ndarray:
-    """Two triangles per cell of a (rows+1)×(cols+1) vertex grid, index = r·(cols+1) + c."""
+def _grid_faces(rows: int, cols: int) -> np.ndarray:
+    """Two triangles per cell of a (rows+1)×(cols+1) vertex grid, index = r·(cols+1) + c (wound
+    by :func:`_oriented` afterwards)."""
     r, c = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
     a = (r * (cols + 1) + c).ravel()
     b, d, e = a + 1, a + cols + 1, a + cols + 2
-    if flip:
-        f = np.concatenate([np.stack([a, d, b], 1), np.stack([b, d, e], 1)])
-    else:
-        f = np.concatenate([np.stack([a, b, d], 1), np.stack([b, e, d], 1)])
-    return f
+    return np.concatenate([np.stack([a, b, d], 1), np.stack([b, e, d], 1)])
 
 
 def _rectangle():

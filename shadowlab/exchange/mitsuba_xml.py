@@ -7,8 +7,8 @@ decomposes every ``to_world`` into scale / rotate / translate steps, which moves
 loads into the same scene as ``mi.load_dict``. Only the plugins shadowlab's scenes use are known
 (:data:`PLUGIN_TAG`). ``$name`` string values of ``width``, ``height`` and ``sample_count`` are
 written as integer parameters with a ``<default>``, so ``mitsuba scene.xml -Dspp=256 -Dresx=512``
-works. A bitmap texture given as a tensor (``data``) is written by the ``save_bitmap`` callback,
-which returns the file name to reference.
+works. Bitmap textures must reference a file (``filename``): the caller writes a tensor texture
+(``data``) to a file first (:func:`shadowlab.exchange.export._texture_files`).
 """
 
 from __future__ import annotations
@@ -45,9 +45,9 @@ def _is_transform(v) -> bool:
     return hasattr(v, "matrix") and hasattr(v, "inverse")
 
 
-def _value(key: str, v, ind: str, ctx: dict) -> list[str]:
+def _value(key: str, v, ind: str) -> list[str]:
     if isinstance(v, dict):
-        return _object(key, v, ind, ctx, nested=True)
+        return _object(key, v, ind, nested=True)
     if _is_transform(v):
         m = np.array(v.matrix, dtype=np.float64).reshape(4, 4)
         vals = " ".join(_num(x) for x in m.ravel())
@@ -69,7 +69,7 @@ def _value(key: str, v, ind: str, ctx: dict) -> list[str]:
     raise SceneError(f"cannot write the Mitsuba parameter {key!r} = {v!r} to XML")
 
 
-def _object(key: str, d: dict, ind: str, ctx: dict, nested: bool) -> list[str]:
+def _object(key: str, d: dict, ind: str, nested: bool) -> list[str]:
     t = d.get("type")
     if t == "rgb":
         vals = d["value"]
@@ -78,30 +78,23 @@ def _object(key: str, d: dict, ind: str, ctx: dict, nested: bool) -> list[str]:
     if t not in PLUGIN_TAG:
         raise SceneError(f"cannot write a Mitsuba object of type {t!r} ({key!r}) to XML")
     tag = PLUGIN_TAG[t]
-    body = dict(d)
-    body.pop("type")
+    body = {k: v for k, v in d.items() if k != "type"}
     if t == "bitmap" and "data" in body:
-        data = body.pop("data")
-        body = {"filename": ctx["save_bitmap"](key, data), **body}
+        raise SceneError(f"bitmap {key!r} holds a tensor; write it to a file and reference it with 'filename'")
     head = f"{ind}<{tag}{_attr(type=t, **({'name': key} if nested else {'id': key}))}"
     if not body:
         return [head + "/>"]
     out = [head + ">"]
     for k, v in body.items():
-        out += _value(k, v, ind + "    ", ctx)
+        out += _value(k, v, ind + "    ")
     out.append(f"{ind}</{tag}>")
     return out
 
 
-def dict_to_xml(scene: dict, save_bitmap=None, defaults: dict | None = None) -> str:
+def dict_to_xml(scene: dict, defaults: dict | None = None) -> str:
     """XML text of a ``{"type": "scene", key: object, ...}`` dict (top-level keys become ids)."""
     if scene.get("type") != "scene":
         raise SceneError("dict_to_xml needs a dict with type 'scene'")
-
-    def no_bitmap(key, data):
-        raise SceneError(f"bitmap {key!r} holds a tensor; pass save_bitmap to write it to a file")
-
-    ctx = {"save_bitmap": save_bitmap or no_bitmap}
     lines = ['<?xml version="1.0" encoding="utf-8"?>', '<scene version="3.0.0">']
     for k, v in (defaults or {}).items():
         lines.append(f"    <default{_attr(name=k, value=v)}/>")
@@ -110,6 +103,6 @@ def dict_to_xml(scene: dict, save_bitmap=None, defaults: dict | None = None) -> 
             continue
         if not isinstance(v, dict):
             raise SceneError(f"top-level scene entry {k!r} is not a plugin dict")
-        lines += [""] + _object(k, v, "    ", ctx, nested=False)
+        lines += [""] + _object(k, v, "    ", nested=False)
     lines.append("</scene>")
     return "\n".join(lines) + "\n"

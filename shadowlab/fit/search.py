@@ -30,7 +30,8 @@ Methods:
   loss does not trap the search at the wrong end), then golden-section search in the bracket
   [x_{i−1}, x_{i+1}] around the best of them, ``evals`` evaluations in all (default 20: the
   bracket shrinks to 1.6 % of its width, 0.8 ‰ of the window);
-  (int): exhaustive when the window holds ≤ 33 values, else golden section on the integers;
+  (int): exhaustive when the window holds ≤ 33 values, else golden section on the integers
+  (``evals`` points, plus at most 4 to finish a bracket of ≤ 4 values);
 * ``grid``: ``points`` values equally spaced in u over the window (ints rounded and deduplicated);
 * ``exhaustive``: every value of a ``choice`` or ``bool``.
 
@@ -98,10 +99,13 @@ class Dim:
     def from_unit_dr(self, u):
         """Dr.Jit u ∈ [0, 1] -> x in the window (float32-safe: never outside the declared range)."""
         import drjit as dr
+        import mitsuba as mi
         a, b = _f32_inside(self.lo, self.hi)
+        # the window enters opaquely: a fit over another window reuses the compiled kernels
+        lo, a, b = (dr.opaque(mi.Float, v) for v in (self.lo, a, b))
         if self.scale == "log":
-            return dr.clip(self.lo * dr.exp(u * math.log(self.hi / self.lo)), a, b)
-        return dr.clip(self.lo + u * (self.hi - self.lo), a, b)
+            return dr.clip(lo * dr.exp(u * dr.opaque(mi.Float, math.log(self.hi / self.lo))), a, b)
+        return dr.clip(lo + u * dr.opaque(mi.Float, self.hi - self.lo), a, b)
 
     def from_unit(self, u: float) -> float:
         a, b = _f32_inside(self.lo, self.hi)
@@ -265,7 +269,7 @@ def adam(s: Search, dims: list, steps: int = 25, lr: float = 0.1, beta_1: float 
     import drjit as dr
     import mitsuba as mi
     base = s.current
-    opt = mi.ad.Adam(lr=lr, beta_1=beta_1, params={d.name: mi.Float(d.to_unit(base[d.name])) for d in dims})
+    opt = mi.ad.Adam(lr=lr, beta_1=beta_1, params={d.name: dr.opaque(mi.Float, d.to_unit(base[d.name])) for d in dims})
     for k in range(steps):
         opt.set_learning_rate(lr * decay ** (k / max(steps - 1, 1)))
         xs = {d.name: d.from_unit_dr(opt[d.name]) for d in dims}
@@ -316,23 +320,34 @@ def golden(s: Search, d: Dim, evals: int = 20):
 
 
 def _golden_int(f, lo: int, hi: int, evals: int):
+    """Golden section on the integers of [lo, hi]: at most ``evals`` distinct points while the
+    bracket is wider than 4 values, then (only once it is that narrow) the rest of the bracket,
+    so at most ``evals`` + 4 points in all; a window of ≤ EXHAUSTIVE_INT values is searched
+    exhaustively."""
     if hi - lo + 1 <= EXHAUSTIVE_INT:
         for x in range(lo, hi + 1):
             f(x)
         return
-    a, b, n = lo, hi, 0
-    while b - a > 3 and n < evals:
+    seen: dict = {}
+
+    def g(x):                               # the interior point kept by a step is not re-counted
+        if x not in seen:
+            seen[x] = f(x)
+        return seen[x]
+
+    a, b = lo, hi
+    while b - a > 3 and len(seen) + 2 <= evals:
         c = int(round(b - PHI * (b - a)))
         e = int(round(a + PHI * (b - a)))
         if e <= c:
             e = c + 1
-        if f(c) <= f(e):
+        if g(c) <= g(e):
             b = e
         else:
             a = c
-        n += 2
-    for x in range(a, b + 1):
-        f(x)
+    if b - a <= 3:
+        for x in range(a, b + 1):
+            g(x)
 
 
 def grid_values(d: Dim, points: int) -> list:

@@ -84,6 +84,15 @@ class Target:
     penumbra: np.ndarray | None
     light: str | None = None
     lights: dict = field(default_factory=dict)   # name -> (V truth H×W, valid H×W)
+    dof: float | None = None                     # degrees of freedom of ``var`` (None: exact)
+
+
+def mitsuba_dof() -> int:
+    """Degrees of freedom of a stored ``mitsuba.var``: the variance of the mean over the passes of
+    :func:`~shadowlab.reference.truth.mitsuba_render` (its default ``passes``, minus 1)."""
+    import inspect
+    from ..reference.truth import mitsuba_render
+    return int(inspect.signature(mitsuba_render).parameters["passes"].default) - 1
 
 
 def truth_target(truth, target: str = "shaded", light: str | None = None) -> Target:
@@ -93,7 +102,8 @@ def truth_target(truth, target: str = "shaded", light: str | None = None) -> Tar
       penumbra = union over lights of the truth penumbra (0.02 < V < 0.98 where the light reaches);
     * ``visibility`` (``light``: default the only light): V with variance se² + (B / 2)², tested
       where the light reaches (U > 0);
-    * ``mitsuba``: Mitsuba's own ``direct`` image with its variance (for path-traced candidates).
+    * ``mitsuba``: Mitsuba's own ``direct`` image with its variance (for path-traced candidates),
+      estimated from a few passes: ``dof`` = :func:`mitsuba_dof`.
     """
     from ..metrics import penumbra_mask
     if target not in TARGETS:
@@ -122,7 +132,7 @@ def truth_target(truth, target: str = "shaded", light: str | None = None) -> Tar
             raise InputError("the reference has no mitsuba.R|G|B channels (rendered with --spp 0); "
                              "re-render it with `shadowlab reference SCENE --force` or gate target = \"shaded\"")
         return Target("mitsuba", np.asarray(truth.mitsuba, np.float64), np.asarray(truth.mitsuba_var, np.float64),
-                      mask, pen, None, lights)
+                      mask, pen, None, lights, dof=mitsuba_dof())
     var = np.asarray(truth.shaded_var, np.float64).copy()
     for n, lt in truth.lights.items():
         var += (np.asarray(truth.U[n], np.float64) * (np.asarray(lt.bound, np.float64) / BOUND_SIGMAS)[..., None]) ** 2
@@ -205,7 +215,7 @@ def _is_truth(obj) -> bool:
 
 def check(candidate, reference, thresholds, *, target: str = "shaded", light: str | None = None,
           candidate_var=None, reference_var=None, valid=None, penumbra=None, visibility: Mapping | None = None,
-          name: str = "gate") -> GateResult:
+          candidate_dof=None, reference_dof=None, name: str = "gate") -> GateResult:
     """Gate ``candidate`` against ``reference``; returns a :class:`GateResult` (never raises on a
     failed check; bad input raises :class:`~shadowlab.errors.InputError`).
 
@@ -217,7 +227,9 @@ def check(candidate, reference, thresholds, *, target: str = "shaded", light: st
     with no penumbra mask a shaded target has no penumbra metrics or penumbra bias test).
     ``thresholds``: a :class:`~shadowlab.gate.thresholds.Thresholds` or a dict
     ``{"statistical": {...}, "budget": {...}}``. ``candidate_var``: the candidate's per-value
-    variance if it has one (e.g. another truth); None = exact. ``visibility``: the candidate's
+    variance if it has one (e.g. another truth); None = exact. ``candidate_dof`` /
+    ``reference_dof``: the degrees of freedom of those variances when they are estimated from few
+    passes (a Truth's ``mitsuba`` target brings its own); None = exact. ``visibility``: the candidate's
     per-light visibility {light: H×W}, needed for the ``leak_rate``, ``overdark_rate`` and
     ``vis_rmse*`` budgets of a shaded target.
 
@@ -232,9 +244,9 @@ def check(candidate, reference, thresholds, *, target: str = "shaded", light: st
         raise InputError(f"gate {name!r}: unknown target {target!r}; one of {', '.join(TARGETS)}")
     if _is_truth(reference):
         tgt = truth_target(reference, target, light)
-        if reference_var is not None or valid is not None or penumbra is not None:
-            raise InputError(f"gate {name!r}: reference_var, valid and penumbra come from the Truth; "
-                             "do not pass them with a Truth reference")
+        if reference_var is not None or valid is not None or penumbra is not None or reference_dof is not None:
+            raise InputError(f"gate {name!r}: reference_var, reference_dof, valid and penumbra come from the "
+                             "Truth; do not pass them with a Truth reference")
     else:
         kind = target
         ref = _as_image("reference image", reference, kind)
@@ -246,7 +258,7 @@ def check(candidate, reference, thresholds, *, target: str = "shaded", light: st
             pen = penumbra_mask(ref, vm)
         else:
             pen = None if penumbra is None else _mask("penumbra", penumbra, hw) & vm
-        tgt = Target(kind, ref, rv, vm, pen, light)
+        tgt = Target(kind, ref, rv, vm, pen, light, dof=reference_dof)
     hw = tgt.image.shape[:2]
     cand = _as_image("candidate image", candidate, tgt.kind, hw)
     cvar = None if candidate_var is None else np.maximum(_as_image("candidate variance", candidate_var, tgt.kind, hw), 0)
@@ -258,7 +270,8 @@ def check(candidate, reference, thresholds, *, target: str = "shaded", light: st
 
     st = th.statistical
     if st is not None:
-        zt = z_test(cand, tgt.image, tgt.var, cvar, tgt.valid, alpha=st.alpha, atol=st.atol, rtol=st.rtol, ptol=st.ptol)
+        zt = z_test(cand, tgt.image, tgt.var, cvar, tgt.valid, alpha=st.alpha, atol=st.atol, rtol=st.rtol, ptol=st.ptol,
+                    dof_ref=tgt.dof, dof_cand=candidate_dof)
         res.images["pvalue"] = zt.p
         res.images["failed_pixels"] = zt.tested & ~zt.passed
         worst = ""
@@ -269,7 +282,9 @@ def check(candidate, reference, thresholds, *, target: str = "shaded", light: st
         res.checks.append(Check(
             "stat.pixels", "statistical", zt.fraction, st.min_pass_fraction, ">=", zt.fraction >= st.min_pass_fraction,
             f"{100 * zt.fraction:.2f}% of {zt.n_tested} pixels pass the Z-test (need >= "
-            f"{100 * st.min_pass_fraction:.2f}%; {zt.n_failed} fail at alpha_pixel {zt.alpha_value:.2g}{worst})"))
+            f"{100 * st.min_pass_fraction:.2f}%; {zt.n_failed} fail at alpha_pixel {zt.alpha_value:.2g}{worst}"
+            + (f"; Student-t p-values, variance dof {tgt.dof} / {candidate_dof}"
+               if tgt.dof is not None or candidate_dof is not None else "") + ")"))
         res.info["alpha_value"] = zt.alpha_value
         if st.bias:
             regions = [("stat.bias", "all", tgt.valid)]

@@ -22,9 +22,12 @@ stamp is stale and fails the test.
 Baselines are written only on request, never because a gate failed (pytest-mpl's flow):
 ``pytest --shadowlab-update`` writes each gated image as its new baseline (atomically: EXR with
 channels ``image.R|G|B`` / ``image`` and ``image.var...``, plus ``<name>.json`` with shape, target,
-stamp) and does not evaluate the gates; the run then reports the baselines it wrote. A missing
-baseline fails the test and names the command. Bad input (NaN/Inf, wrong shape, unknown
-threshold) raises :class:`~shadowlab.errors.InputError` and writes nothing.
+stamp) and does not evaluate the gates; the run then reports the baselines it wrote. The images are
+validated at the call and written when the test has passed: a test that fails or errors (after
+the call, or in a later call with bad input) writes none of its baselines, and the run lists them
+as not written. A name may be written once per run. A missing baseline fails the test and names
+the command. Bad input (NaN/Inf, wrong shape, unknown threshold) raises
+:class:`~shadowlab.errors.InputError` and writes nothing.
 
 Where baselines live: ``--shadowlab-baseline-dir DIR`` > the ini option ``shadowlab_baseline_dir``
 (relative to the ini file) > ``baselines/`` next to the test file. ``--shadowlab-results DIR``
@@ -40,7 +43,10 @@ from pathlib import Path
 
 import pytest
 
-_written_key = pytest.StashKey[list]()
+_written_key = pytest.StashKey[list]()      # config: baselines written this run
+_skipped_key = pytest.StashKey[list]()      # config: baselines not written (their test failed)
+_pending_key = pytest.StashKey[set]()       # config: baseline paths claimed this run
+_call_key = pytest.StashKey[object]()       # item: the report of its call phase
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$")
 
 
@@ -78,6 +84,24 @@ class ShadowlabGate:
         self.update = bool(request.config.getoption("--shadowlab-update"))
         self.dir = _baseline_dir(request)
         self.results_dir = request.config.getoption("--shadowlab-results")
+        self.pending = []                   # (exr, json, channels, meta): written when the test passed
+
+    def _write_pending(self):
+        """Write the baselines of this test (fixture teardown: only if its call phase passed)."""
+        cfg = self.request.config
+        rep = self.request.node.stash.get(_call_key, None)
+        if rep is None or not rep.passed:
+            cfg.stash.setdefault(_skipped_key, []).extend(str(exr) for exr, *_ in self.pending)
+            return
+        from ..io.exr import write_exr
+        from ..io.jsonio import write_json_atomic
+        for exr, meta_path, ch, meta in self.pending:
+            write_exr(exr, ch)
+            # the JSON (written second) holds the EXR's hash: an update interrupted between the two
+            # files is detected instead of pairing a new image with old metadata
+            write_json_atomic(meta_path, {**meta, "exr_sha256": hashlib.sha256(exr.read_bytes()).hexdigest(),
+                                          "written": _dt.datetime.now().isoformat(timespec="seconds")})
+            cfg.stash.setdefault(_written_key, []).append(str(exr))
 
     def paths(self, name: str) -> tuple[Path, Path]:
         from ..errors import InputError
@@ -111,8 +135,8 @@ class ShadowlabGate:
         import numpy as np
 
         from ..errors import InputError
-        from ..io.exr import read_exr, split_rgb, write_exr
-        from ..io.jsonio import read_json, write_json_atomic
+        from ..io.exr import read_exr, split_rgb
+        from ..io.jsonio import read_json
         from .check import GateResult, _as_image, check
         exr, meta_path = self.paths(name)
         th = self._split(dict(thresholds))
@@ -127,17 +151,17 @@ class ShadowlabGate:
             raise InputError(f"shadowlab_gate: stamp must be a string, got {stamp!r}")
 
         if self.update:
+            claimed = self.request.config.stash.setdefault(_pending_key, set())
+            if exr in claimed:
+                raise InputError(f"shadowlab_gate: baseline {name!r} is gated twice in this --shadowlab-update run; "
+                                 "give each image its own name")
+            claimed.add(exr)
             ch = split_rgb(img, "image") if img.ndim == 3 else {"image": img}
             if var is not None:
                 ch.update(split_rgb(var, "image.var") if var.ndim == 3 else {"image.var": var})
-            write_exr(exr, ch)
-            # the JSON (written second) holds the EXR's hash: an update interrupted between the two
-            # files is detected instead of pairing a new image with old metadata
-            write_json_atomic(meta_path, {"name": name, "shape": list(img.shape), "target": target, "stamp": stamp,
-                                          "variance": var is not None, "test": self.request.node.nodeid,
-                                          "exr_sha256": hashlib.sha256(exr.read_bytes()).hexdigest(),
-                                          "written": _dt.datetime.now().isoformat(timespec="seconds")})
-            self.request.config.stash.setdefault(_written_key, []).append(str(exr))
+            self.pending.append((exr, meta_path, ch, {"name": name, "shape": list(img.shape), "target": target,
+                                                      "stamp": stamp, "variance": var is not None,
+                                                      "test": self.request.node.nodeid}))
             return GateResult(name=name, target=target, info={"updated": str(exr)})
 
         hint = "run pytest with --shadowlab-update to write it" if not exr.exists() else \
@@ -183,11 +207,22 @@ class ShadowlabGate:
         return res
 
 
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    rep = outcome.get_result()
+    if rep.when == "call":
+        item.stash[_call_key] = rep
+
+
 @pytest.fixture
 def shadowlab_gate(request):
     """Gate an image against its baseline: ``shadowlab_gate(image, name, **thresholds)``; see
     :mod:`shadowlab.gate.pytest_plugin`."""
-    return ShadowlabGate(request)
+    gate = ShadowlabGate(request)
+    yield gate
+    if gate.pending:
+        gate._write_pending()
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
@@ -195,4 +230,9 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
     if written:
         terminalreporter.write_sep("-", f"shadowlab: wrote {len(written)} baseline(s)")
         for p in written:
+            terminalreporter.write_line(f"  {p}")
+    skipped = config.stash.get(_skipped_key, [])
+    if skipped:
+        terminalreporter.write_sep("-", f"shadowlab: {len(skipped)} baseline(s) NOT written: their test failed")
+        for p in skipped:
             terminalreporter.write_line(f"  {p}")

@@ -55,12 +55,12 @@ def _pick(ch: dict, prefix: str, rgb: bool):
 
 def exr_candidate(path, target: str, light: str | None, channel: str | None = None,
                   variance: str | None = None, std_error: str | None = None):
-    """(image, variance or None) of an EXR candidate for ``target``.
+    """(image, variance or None, its degrees of freedom or None) of an EXR candidate for ``target``.
 
     ``channel`` is a prefix: ``P.R|G|B`` (or plain ``R|G|B`` for ``channel = ""``) for the RGB
     targets, the channel ``P`` itself for a visibility target. Without it: a shadowlab
     ``truth.exr`` gives its target image and variance exactly as the reference does
-    (:func:`~shadowlab.gate.check.truth_target`); otherwise RGB targets look for ``shaded.*`` then
+    (:func:`~shadowlab.gate.check.truth_target`, with its degrees of freedom); otherwise RGB targets look for ``shaded.*`` then
     ``R|G|B``, a visibility target for ``V.<light>``, ``shadow.<light>``, ``<light>`` or the only
     channel. The variance is ``variance`` (a prefix like the image's) or ``std_error`` squared; by
     default ``<P>.var`` (RGB or single) or ``<P>.se`` squared if present, else none (exact)."""
@@ -73,7 +73,7 @@ def exr_candidate(path, target: str, light: str | None, channel: str | None = No
             if target == "mitsuba" and tr.mitsuba is None:
                 raise InputError(f"{path} is a truth file without mitsuba.R|G|B channels; pick channel = \"shaded\"")
             t = truth_target(tr, target, light)
-            return t.image, t.var
+            return t.image, t.var, t.dof
     if channel is None:
         tries = ["shaded", ""] if rgb else [f"V.{light}", f"shadow.{light}", str(light)]
         channel = next((p for p in tries if _pick(ch, p, rgb) is not None), None)
@@ -104,7 +104,7 @@ def exr_candidate(path, target: str, light: str | None, channel: str | None = No
             if v is not None:
                 var = np.asarray(v, np.float64) ** 2 if sq else v
                 break
-    return np.asarray(img, np.float64), (None if var is None else np.asarray(var, np.float64))
+    return np.asarray(img, np.float64), (None if var is None else np.asarray(var, np.float64)), None
 
 
 # ------------------------------------------------------------------------------------------ run
@@ -161,7 +161,7 @@ def _technique_candidate(ctx: _Context, g: GateSpec):
     dr.eval(*res.visibility.values())
     vis = {l.name: frame.image(res.visibility[l.name]) for l in frame.lights}
     img = vis[g.light] if g.target == "visibility" else compose(frame, res.visibility)
-    return img, None, vis
+    return img, None, None, vis
 
 
 def _truth_candidate(ctx: _Context, g: GateSpec):
@@ -176,7 +176,7 @@ def _truth_candidate(ctx: _Context, g: GateSpec):
                       max_rounds=int(s.get("max_rounds", 64)), seed=g.candidate.seed,
                       spp=int(s.get("mitsuba_spp", 256)) if g.target == "mitsuba" else 0)
     t = truth_target(tr, g.target, g.light)
-    return t.image, t.var, None
+    return t.image, t.var, t.dof, None
 
 
 def run_gate(ctx: _Context, g: GateSpec) -> GateResult:
@@ -186,15 +186,15 @@ def run_gate(ctx: _Context, g: GateSpec) -> GateResult:
     truth, meta = ctx.truth(g)
     c = g.candidate
     if c.kind == "technique":
-        img, var, vis = _technique_candidate(ctx, g)
+        img, var, dof, vis = _technique_candidate(ctx, g)
     elif c.kind == "truth":
-        img, var, vis = _truth_candidate(ctx, g)
+        img, var, dof, vis = _truth_candidate(ctx, g)
     else:
-        img, var = exr_candidate(c.path, g.target, g.light, c.channel, c.variance, c.std_error)
+        img, var, dof = exr_candidate(c.path, g.target, g.light, c.channel, c.variance, c.std_error)
         vis = None
     try:
-        res = check(img, truth, g.thresholds, target=g.target, light=g.light, candidate_var=var, visibility=vis,
-                    name=g.name)
+        res = check(img, truth, g.thresholds, target=g.target, light=g.light, candidate_var=var, candidate_dof=dof,
+                    visibility=vis, name=g.name)
     except InputError as e:
         raise InputError(f"gate {g.name!r} ({c.describe()}): {e}") from None
     spec = ctx.spec(g)

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.jsonio import write_json_atomic
+from ..io.png import write_bytes_atomic
 
 VARIANTS = ("base", "linear", "discrete", "convex")
 DIRECTIONS = ("A", "B")
@@ -81,12 +82,12 @@ def _pass(frame, variant, direction, eps, i_max=I_MAX, scale=1.0):
     """The shadow pass of one configuration; returns (visibility image, SDF evaluations, stopped)."""
     import drjit as dr
     import mitsuba as mi
-    from ..techniques.sdf_shadows import SURFACE_RADIUS, sdf_bbox, surface_points
+    from ..techniques.sdf_shadows import SURFACE_RADIUS, surface_points
     from . import soft
     light = frame.lights[0]
     o, R0 = surface_points(frame, SURFACE_RADIUS.default)
     c, R = soft.light_sphere(frame.scene, light)
-    cone = soft.make_cone(o, R0, c, dr.opaque(mi.Float, R * scale), direction, bbox=sdf_bbox(frame.sdf))
+    cone = soft.make_cone(o, R0, c, dr.opaque(mi.Float, R * scale), direction, bbox=soft.bounds(frame.sdf))
     m = soft.march(frame.sdf, cone, variant, eps=eps, i_max=i_max)
     dr.eval(m.visibility, m.iterations)
     return m
@@ -228,8 +229,4 @@ def run(out: Path, quick: bool = False) -> Path:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "sdf.json", res)
-    md = out / "sdf.md"
-    tmp = md.with_suffix(".md.tmp")
-    tmp.write_text(_markdown(res))
-    tmp.replace(md)
-    return md
+    return write_bytes_atomic(out / "sdf.md", _markdown(res).encode())

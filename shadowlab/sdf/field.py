@@ -438,8 +438,9 @@ class Difference(SDF):
 
 class Offset(SDF):
     """The offset ``S_d`` of 004 §2.6.1: ``f − d`` grows the solid by ``d > 0`` (rounded edges)
-    and erodes it for ``d < 0``; exact for exact ``f`` and ``d ≥ 0`` (erosion of an exact
-    field is exact too, 004 Def. 2.6.1); convexity is kept either way.
+    and erodes it for ``d < 0``; exact for exact ``f`` and ``d ≥ 0``. Erosion is only a bound:
+    the eroded solid's edges and corners lie √2·|d| and √3·|d| inside the original ones
+    (004 Fig. 6.20), farther than ``f`` + |d| says. Convexity is kept either way.
 
     >>> import mitsuba as mi
     >>> float(Offset(Segment((0, 0, 0), (0, 1, 0)), 0.25).distance(mi.Point3f(1, 0.5, 0))[0])
@@ -449,7 +450,7 @@ class Offset(SDF):
     def __init__(self, child: SDF, d: float):
         super().__init__()
         self.child, self.d = child, float(d)
-        self.exact, self.convex = child.exact, child.convex
+        self.exact, self.convex = child.exact and self.d >= 0, child.convex
         self.name, self.albedo = child.name, child.albedo
         grow = max(self.d, 0.0)
         self.bbox_min, self.bbox_max = child.bbox_min - grow, child.bbox_max + grow

@@ -28,25 +28,12 @@ NOTE = ("scene has SDF-only objects ([[sdf]]) that Mitsuba does not see: this tr
         "cone-traced G-buffer's points, not a Mitsuba truth; V is cosine-weighted, A the solid-angle fraction.")
 
 
-def mc_cone_function():
-    """SDF-B's ``shadowlab.sdf.soft.mc_cone_visibility``, or an InputError that says what is missing."""
-    try:
-        from . import soft
-        return soft.mc_cone_visibility
-    except (ImportError, AttributeError) as e:
-        raise InputError(
-            "this scene has SDF-only objects ([[sdf]], e.g. a Mandelbulb) that Mitsuba cannot render, so its "
-            "ground truth is the Monte-Carlo cone reference shadowlab.sdf.soft.mc_cone_visibility, which is not "
-            f"available in this installation ({e}); no reference was written. Scenes whose objects all have "
-            "Mitsuba twins (`shadowlab scenes`) render their truth with Mitsuba.") from e
-
-
 def render_truth(frame, *, samples: int = 1024, seed: int = 0, progress=None):
     """The :class:`shadowlab.reference.truth.Truth` of an SDF-only scene (module docstring)."""
     import drjit as dr
     from ..reference.truth import LightTruth, Truth
     from ..render.gbuffer import vec_numpy
-    mc = mc_cone_function()
+    from .soft import mc_cone_visibility
     scene, gb = frame.scene, frame.gbuffer
     bad = [f"{l.name} ({l.kind})" for l in frame.lights if l.kind != "sphere"]
     if bad:
@@ -63,19 +50,18 @@ def render_truth(frame, *, samples: int = 1024, seed: int = 0, progress=None):
     img = gb.to_image
     s2 = gb.ss * gb.ss
 
-    def estimate(light, **kw):
-        x = mc(frame.sdf, gb.p, gb.n, light, n, seed=seed, **kw)
-        dr.eval(x)
-        x = np.asarray(x.numpy() if hasattr(x, "numpy") else x, dtype=np.float64).reshape(-1)
-        x = np.where(valid, np.clip(x, 0.0, 1.0), 1.0)
+    def image(x):
+        x = np.where(valid, np.clip(x.numpy().astype(np.float64), 0.0, 1.0), 1.0)
         se = np.sqrt(x * (1.0 - x) / n)
         return img(x), np.sqrt(img(se * se) / s2)  # a pixel is the mean of its s² points
 
     for l in frame.lights:
-        V, V_se = estimate(l, cosine=True)
-        A, A_se = estimate(l)
+        # A (solid-angle fraction) and V (cosine-weighted) from the same n rays per point
+        A, V = mc_cone_visibility(frame.sdf, gb.p, gb.n, l, n, seed=seed, cosine="both")
+        dr.eval(A, V)
+        (A, A_se), (V, V_se) = image(A), image(V)
         lt = LightTruth(V=V, V_se=V_se, A=A, A_se=A_se, samples=img(np.where(valid, float(n), 0.0)) * s2,
-                        bound=np.zeros_like(V), rays=2 * int(valid.sum()) * n)
+                        bound=np.zeros_like(V), rays=int(valid.sum()) * n)
         lights[l.name] = lt
         U[l.name] = gb.to_image(vec_numpy(frame.unshadowed[l.name]))
         shaded = shaded + U[l.name] * lt.V[..., None]

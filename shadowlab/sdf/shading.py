@@ -30,10 +30,7 @@ trace loop of ``traced`` exactly when the previous ray finished.
 
 from __future__ import annotations
 
-import math
-
 import drjit as dr
-import numpy as np
 
 from . import soft
 
@@ -139,7 +136,7 @@ def visibility(frame, light, sdf, o, R0, *, estimator: str = "edge", samples: in
         aovs["iterations"] = mi.Float(its)
         return v, aovs
     center, R = soft.light_sphere(frame.scene, light, fit="bounding")
-    cone = soft.make_cone(o, R0, center, dr.opaque(mi.Float, R), direction, bbox=_bbox(sdf))
+    cone = soft.make_cone(o, R0, center, dr.opaque(mi.Float, R), direction, bbox=soft.bounds(sdf))
     m = soft.march(sdf, cone, "linear", eps=eps, i_max=i_max)
     aovs.update(r_min=m.r_min, iterations=mi.Float(m.iterations))
     if estimator == "separable":
@@ -151,9 +148,3 @@ def visibility(frame, light, sdf, o, R0, *, estimator: str = "edge", samples: in
     v = _edge_loop(emitter, gb.si, o, nrm, valid, idx, k, sh, x_min, g, f_min, v_axis, m.found)
     return v, aovs
 
-
-def _bbox(sdf):
-    lo, hi = getattr(sdf, "bbox_min", None), getattr(sdf, "bbox_max", None)
-    if lo is None or hi is None:
-        return None
-    return (np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64))

@@ -29,7 +29,10 @@ inside its bounding box grown by the largest cone radius (outside it ``f ≥ ρ`
 ``ϱ(f; t) = f/ρ(t)`` (Def. 4.1.1) and the threshold / trace cones ``T`` and ``C`` of relative
 radii ``R^T > R^C``:
 
-* ``base`` — Algorithm 3: ``R^C = τ⁻¹(τ(R^T) − ε)``, stop when ``m = τ(R^T) ≤ ε``;
+* ``base`` — Algorithm 3: ``R^C = τ⁻¹(τ(R^T) − ε)``, stop when ``m = τ(R^T) ≤ ε``. On a
+  detection ``R^T ← F/ρ(t)``, the relative size of Def. 4.1.1 (the L cone's radius); the printed
+  ``F/(R_0^T + t·tanα^T)`` divides by T's own radius ``R^T·ρ(t)``, which gives ``ϱ/R^T_old``, not
+  a relative distance (it can even exceed ``R^T_old``), and is read as a misprint;
 * ``linear`` — Algorithm 4: ``R^C = R^T − e`` with ``e = επ/2`` (τ' ≤ 2/π), one τ at the end. The
   printed loop condition ``R^T > e`` would stop every march at half shadow (τ(e) ≈ ½); it is read
   as Algorithm 3's ``τ(R^T) > ε``, i.e. ``R^T > τ⁻¹(ε)`` with that constant computed once;
@@ -54,7 +57,8 @@ value, and, when the light radius is a Dr.Jit variable with gradients, ``d/dR`` 
 by the envelope theorem (the argmin does not move to first order) — the light radius is
 differentiable without reverse-mode AD through the loop. ``discrete`` returns its level ``m``.
 
-**Hard shadows** (004 §3.1): :func:`hard` — sphere tracing toward the light's centre.
+**Hard shadows** (004 §3.1): :func:`shadowlab.sdf.trace.hard_visibility` — sphere tracing toward
+the light's centre.
 **Anti-aliased hard shadows** (004 §4.3.3): the same single-ray algorithms with ``R = 0``; the
 surface sphere keeps the cone open, so the shadow edge is a ramp about one pixel wide.
 
@@ -118,8 +122,8 @@ def tau_inv(m, iterations: int = TAU_INV_ITERATIONS):
     """τ⁻¹ by bisection on [−1, 1] (004 §4.3.1): ``iterations`` halvings (a fixed, unrolled
     loop); m ≤ 0 gives −1, m ≥ 1 gives 1.
 
-    >>> round(float(tau_inv(np.array(0.5))), 6)
-    0.0
+    >>> abs(float(tau_inv(np.array(0.5)))) < 1e-6, round(float(tau_inv(tau(np.array(-0.3)))), 6)
+    (True, -0.3)
     """
     jit = isinstance(m, dr.ArrayBase)
     if not jit:
@@ -202,6 +206,12 @@ def _box_clip(o, v, lo, hi, grow):
     t_in = dr.maximum(dr.maximum(dr.minimum(a.x, b.x), dr.minimum(a.y, b.y)), dr.minimum(a.z, b.z))
     t_out = dr.minimum(dr.minimum(dr.maximum(a.x, b.x), dr.maximum(a.y, b.y)), dr.maximum(a.z, b.z))
     return t_in, t_out
+
+
+def bounds(sdf):
+    """``(bbox_min, bbox_max)`` of a bounded SDF, the ``bbox`` of :func:`make_cone`; None if it is
+    unbounded (a plane)."""
+    return (sdf.bbox_min, sdf.bbox_max) if sdf.bounded else None
 
 
 def make_cone(p, R0, center, R, direction: str = "A", bbox=None) -> Cone:
@@ -462,21 +472,7 @@ def edge_line(sdf, m: March):
 
 
 # ----------------------------------------------------------------------------------------------
-# hard shadows and the Quílez / Aaltonen baseline
-
-def hard(sdf, p, center, *, eps: float = 1e-4, i_max: int = 256, t_max=None):
-    """Hard shadow of a point light at ``center`` (004 §3.1): sphere trace from ``p`` (already
-    off the surface) toward it; 1 where it is reached, else 0. Returns (visibility, iterations)."""
-    import mitsuba as mi
-    from .trace import sphere_trace
-    p = mi.Vector3f(p)
-    c = mi.Vector3f(*map(float, center))
-    D = c - p
-    d = dr.norm(D)
-    hit, _, its = sphere_trace(sdf, p, D / dr.maximum(d, 1e-12), d if t_max is None else t_max, eps=eps,
-                               i_max=i_max)
-    return dr.select(hit, 0.0, 1.0), its
-
+# the Quílez / Aaltonen baseline
 
 def _quilez_ratio(h, ph, t, improved: bool):
     """h/t (Quílez 2010) or d/max(0, t − y), y = h²/(2·h_prev), d = √(h² − y²) (Aaltonen 2018);
@@ -564,8 +560,9 @@ def _hash_u32(seed: int) -> int:
     return _hash32(0x5DF, seed)
 
 
-def _disk_ray(j, h2, h3, off1, off2, nmax, o, v, e1, e2, c, dc, R, rho_d, nrm, sqrt_scheme, solid, cosine):
-    """Direction, trace length and weight of Halton sample ``j`` (module docstring)."""
+def _disk_ray(j, h2, h3, off1, off2, nmax, o, v, e1, e2, c, dc, R, rho_d, nrm, sqrt_scheme, solid):
+    """Direction, trace length, weight (disk or solid-angle measure) and cosine factor
+    max(0, n·ω) of Halton sample ``j`` (module docstring)."""
     import mitsuba as mi
     jj = dr.minimum(j, nmax - 1)
     u1 = dr.gather(mi.Float, h2, jj) + off1
@@ -583,27 +580,27 @@ def _disk_ray(j, h2, h3, off1, off2, nmax, o, v, e1, e2, c, dc, R, rho_d, nrm, s
     ct = dr.dot(omega, v)
     if solid:
         w = w * ct * ct * ct
-    if cosine:
-        w = w * dr.maximum(dr.dot(nrm, omega), 0.0)
     # distance to the light sphere along omega (first intersection)
     b = dr.dot(omega, c - o)
     disc = b * b - (dc * dc - R * R)
     tmax = b - dr.sqrt(dr.maximum(disc, 0.0))
-    return omega, dr.maximum(tmax, 0.0), w
+    return omega, dr.maximum(tmax, 0.0), w, dr.maximum(dr.dot(nrm, omega), 0.0)
 
 
 @dr.syntax
-def _mc_loop(sdf, o, v, e1, e2, c, dc, R, rho_d, nrm, h2, h3, off1, off2, n, eps, i_max, sqrt_scheme, solid,
-             cosine):
+def _mc_loop(sdf, o, v, e1, e2, c, dc, R, rho_d, nrm, h2, h3, off1, off2, n, eps, i_max, sqrt_scheme, solid):
+    """One sphere-traced ray per Halton sample; returns (Σw·v/Σw, Σw·cos·v/Σw·cos, SDF evaluations):
+    both measures from the same rays."""
     import mitsuba as mi
     N = dr.width(dc)
     j = dr.zeros(mi.UInt32, N)
-    omega, tmax, w = _disk_ray(j, h2, h3, off1, off2, n, o, v, e1, e2, c, dc, R, rho_d, nrm, sqrt_scheme, solid,
-                               cosine)
+    omega, tmax, w, cw = _disk_ray(j, h2, h3, off1, off2, n, o, v, e1, e2, c, dc, R, rho_d, nrm, sqrt_scheme, solid)
     t = dr.zeros(mi.Float, N)
     k = dr.zeros(mi.UInt32, N)
     sw = dr.zeros(mi.Float, N)
     swv = dr.zeros(mi.Float, N)
+    sc = dr.zeros(mi.Float, N)
+    scv = dr.zeros(mi.Float, N)
     its = dr.zeros(mi.UInt32, N)
     while j < n:
         f = sdf.distance(mi.Point3f(o + omega * t))
@@ -613,17 +610,22 @@ def _mc_loop(sdf, o, v, e1, e2, c, dc, R, rho_d, nrm, h2, h3, off1, off2, n, eps
         its += 1
         done = hit | (t >= tmax) | (k >= i_max)
         vis = dr.select(hit | (t < tmax), 0.0, 1.0)
-        sw += dr.select(done, w, 0.0)
-        swv += dr.select(done, w * vis, 0.0)
+        wd = dr.select(done, w, 0.0)
+        sw += wd
+        swv += wd * vis
+        sc += wd * cw
+        scv += wd * cw * vis
         j = dr.select(done, j + 1, j)
-        om2, tm2, w2 = _disk_ray(j, h2, h3, off1, off2, n, o, v, e1, e2, c, dc, R, rho_d, nrm, sqrt_scheme, solid,
-                                 cosine)
+        om2, tm2, w2, cw2 = _disk_ray(j, h2, h3, off1, off2, n, o, v, e1, e2, c, dc, R, rho_d, nrm, sqrt_scheme,
+                                      solid)
         omega = dr.select(done, om2, omega)
         tmax = dr.select(done, tm2, tmax)
         w = dr.select(done, w2, w)
+        cw = dr.select(done, cw2, cw)
         t = dr.select(done, 0.0, t)
         k = dr.select(done, 0, k)
-    return dr.select(sw > 0.0, swv / dr.maximum(sw, 1e-30), 1.0), its
+    return (dr.select(sw > 0.0, swv / dr.maximum(sw, 1e-30), 1.0),
+            dr.select(sc > 0.0, scv / dr.maximum(sc, 1e-30), 1.0), its)
 
 
 def start_points(sdf, points, normals, clearance: float):
@@ -637,7 +639,7 @@ def start_points(sdf, points, normals, clearance: float):
 
 
 def mc_cone_visibility(sdf, points, normals, light, n: int = 256, *, scheme: str = "sqrt",
-                       measure: str = "solid_angle", cosine: bool = False, seed: int = 0, eps: float = 1e-4,
+                       measure: str = "solid_angle", cosine: bool | str = False, seed: int = 0, eps: float = 1e-4,
                        i_max: int = 512, clearance: float | None = None, radius: float | None = None,
                        scene=None, return_iterations: bool = False):
     """Monte-Carlo visibility of a spherical light inside the cone from each point (004 §3.3.1).
@@ -648,12 +650,15 @@ def mc_cone_visibility(sdf, points, normals, light, n: int = 256, *, scheme: str
     weighted by r), each one sphere-traced shadow ray from the point moved ``clearance`` off
     the surface along its normal (default 10·eps) to the light sphere; a ray still marching
     after ``i_max`` steps counts as blocked. ``measure`` / ``cosine``: module docstring.
-    Returns mi.Float per point (and the SDF evaluations per point with ``return_iterations``)."""
+    Returns mi.Float per point (and the SDF evaluations per point with ``return_iterations``);
+    ``cosine="both"`` returns the pair (plain, cosine-weighted) from the same rays."""
     import mitsuba as mi
     if scheme not in SCHEMES:
         raise ValueError(f"scheme must be one of {SCHEMES}, not {scheme!r}")
     if measure not in MEASURES:
         raise ValueError(f"measure must be one of {MEASURES}, not {measure!r}")
+    if cosine not in (False, True, "both"):
+        raise ValueError(f"cosine must be False, True or 'both', not {cosine!r}")
     n = int(n)
     if n < 1:
         raise ValueError("n must be at least 1")
@@ -681,7 +686,7 @@ def mc_cone_visibility(sdf, points, normals, light, n: int = 256, *, scheme: str
     rng = mi.PCG32(N, dr.opaque(mi.UInt64, _hash_u32(seed)), mi.UInt64(idx))
     off1, off2 = rng.next_float32(), rng.next_float32()
     h2, h3 = _halton_arrays(n)
-    vis, its = _mc_loop(sdf, o, v, e1, e2, c, dc, Rf, rho_d, nrm, h2, h3, off1, off2, _opaque(n, "uint"),
-                        _opaque(eps), _opaque(i_max, "uint"), scheme == "sqrt", measure == "solid_angle",
-                        bool(cosine))
+    plain, cos, its = _mc_loop(sdf, o, v, e1, e2, c, dc, Rf, rho_d, nrm, h2, h3, off1, off2, _opaque(n, "uint"),
+                               _opaque(eps), _opaque(i_max, "uint"), scheme == "sqrt", measure == "solid_angle")
+    vis = (plain, cos) if cosine == "both" else cos if cosine else plain
     return (vis, its) if return_iterations else vis

@@ -89,14 +89,18 @@ def _cone_loop(sdf, o, d, t_max, ta, r0, eps, k1, imax):
     return hit, dr.select(hit, t, dr.minimum(t, t_max)), i
 
 
-def hard_visibility(sdf, p, n, target, *, eps=1e-4, i_max=256, offset=None):
+def hard_visibility(sdf, p, n, target, *, eps=1e-4, i_max=256, offset=None, return_iterations=False):
     """Hard shadow of a point light at ``target`` (004 §3.1): 1 where the sphere trace from
-    ``p`` (moved off the surface along the normal ``n`` by ``offset``, default 4·eps) reaches
-    ``target`` without a hit, else 0 (mi.Float). ``target`` may be one point or one per lane."""
+    ``p`` (moved off the surface along the normal ``n`` by ``offset``, default 4·eps; ``n=None``:
+    ``p`` is already off the surface) reaches ``target`` without a hit, else 0 (mi.Float), and
+    the SDF evaluations per lane with ``return_iterations``. ``target`` may be one point or one
+    per lane (a 3-sequence or a Dr.Jit vector)."""
     import mitsuba as mi
-    p, n, target = mi.Vector3f(p), mi.Vector3f(n), mi.Vector3f(target)
-    o = p + n * float(4 * eps if offset is None else offset)
+    p = mi.Vector3f(p)
+    target = mi.Vector3f(target) if isinstance(target, dr.ArrayBase) else mi.Vector3f(*map(float, target))
+    o = p if n is None else p + mi.Vector3f(n) * float(4 * eps if offset is None else offset)
     to = target - o
-    dist = dr.norm(to)
-    hit, _, _ = sphere_trace(sdf, o, to / dist, dist, eps=eps, i_max=i_max)
-    return dr.select(hit, 0.0, 1.0)
+    dist = dr.maximum(dr.norm(to), 1e-12)
+    hit, _, its = sphere_trace(sdf, o, to / dist, dist, eps=eps, i_max=i_max)
+    v = dr.select(hit, 0.0, 1.0)
+    return (v, its) if return_iterations else v

@@ -57,6 +57,7 @@ import numpy as np
 from ..errors import InputError
 from ..sdf import shading as sdf_shading
 from ..sdf import soft
+from ..sdf.trace import hard_visibility
 from .base import Param, ShadowResult, Technique, param_table_markdown, register
 
 SOURCE = "004_15e39f1e68ecd753.txt"
@@ -108,13 +109,6 @@ def surface_points(frame, surface_radius):
     s = surface_radius if isinstance(surface_radius, dr.ArrayBase) else dr.opaque(mi.Float, float(surface_radius))
     R0 = dr.maximum(dist * per_unit * s, 1e-6)
     return mi.Vector3f(gb.p) + mi.Vector3f(gb.ng) * R0, R0
-
-
-def sdf_bbox(sdf):
-    lo, hi = getattr(sdf, "bbox_min", None), getattr(sdf, "bbox_max", None)
-    if lo is None or hi is None:
-        return None
-    return np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
 
 
 class SDFTechnique(Technique):
@@ -193,7 +187,8 @@ class SDFHard(SDFTechnique):
 
     def light_visibility(self, frame, sdf, light, o, R0, values):
         center, _ = soft.light_sphere(frame.scene, light)
-        v, its = soft.hard(sdf, o, center, eps=values["hit_eps"], i_max=values["i_max"])
+        v, its = hard_visibility(sdf, o, None, center, eps=values["hit_eps"], i_max=values["i_max"],
+                                 return_iterations=True)
         return v, {"iterations": mi.Float(its)}, 0.0
 
 
@@ -208,7 +203,7 @@ class SingleRay(SDFTechnique):
     def light_visibility(self, frame, sdf, light, o, R0, values):
         center, R, Rv = self.radius_for(frame, light, values)
         variant = values.get("variant", self.variant)
-        cone = soft.make_cone(o, R0, center, R, values["direction"], bbox=sdf_bbox(sdf))
+        cone = soft.make_cone(o, R0, center, R, values["direction"], bbox=soft.bounds(sdf))
         m = soft.march(sdf, cone, variant, eps=values["epsilon"], i_max=values["i_max"])
         return m.visibility, {"iterations": mi.Float(m.iterations), "r_min": m.r_min, "t_min": m.t_min}, Rv
 
