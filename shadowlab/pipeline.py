@@ -110,33 +110,23 @@ def run_techniques(frame, names: list[str], params: dict) -> dict:
 
 def technique_metrics(frame, truth, result) -> tuple[dict, dict, dict]:
     """(metrics, per_light, images) of one ShadowResult against the truth."""
-    from .metrics import compare_shaded, compare_visibility, penumbra_mask
+    from .metrics import compare_shaded, penumbra_mask, pooled_visibility
     from .render.shading import compose
     mask = truth.mask
-    per_light, vis_imgs = {}, {}
+    vis_imgs, lights = {}, {}
     pen = np.zeros_like(mask)
-    pooled = {"leak": [0, 0], "overdark": [0, 0]}
     for l in frame.lights:
         v = frame.image(result.visibility[l.name])
         valid = mask & frame.lit_mask(l.name)
         tv = truth.lights[l.name].V
         # where the light does not reach, visibility does not matter: the report shows the truth there
         vis_imgs[l.name] = np.where(valid, v, tv)
-        per_light[l.name] = compare_visibility(v, tv, valid)
+        lights[l.name] = (v, tv, valid)
         pen |= penumbra_mask(tv, valid)
-        umbra = valid & (tv <= 0.02)
-        lit = valid & (tv >= 0.98)
-        pooled["leak"][0] += int((umbra & (v > 0.5)).sum())
-        pooled["leak"][1] += int(umbra.sum())
-        pooled["overdark"][0] += int((lit & (v < 0.5)).sum())
-        pooled["overdark"][1] += int(lit.sum())
+    per_light, pooled = pooled_visibility(lights)
     shaded = compose(frame, result.visibility)
     m = compare_shaded(shaded, truth.shaded, penumbra=pen, valid=mask)
-    m["leak_rate"] = pooled["leak"][0] / pooled["leak"][1] if pooled["leak"][1] else 0.0
-    m["overdark_rate"] = pooled["overdark"][0] / pooled["overdark"][1] if pooled["overdark"][1] else 0.0
-    m["vis_rmse"] = float(np.mean([d["rmse"] for d in per_light.values()]))
-    m["vis_rmse_penumbra"] = float(np.nanmean([d["rmse_penumbra"] for d in per_light.values()])) \
-        if any(np.isfinite(d["rmse_penumbra"]) for d in per_light.values()) else float("nan")
+    m.update(pooled)
     return m, per_light, {"shaded": shaded, "vis": vis_imgs}
 
 

@@ -177,7 +177,7 @@ def _fmt(v: float) -> str:
 
 
 def _budget_metrics(cand, tgt: Target, keys, visibility) -> dict:
-    from ..metrics import compare_shaded, compare_visibility, flip
+    from ..metrics import compare_shaded, compare_visibility, flip, pooled_visibility
     out: dict = {}
     if tgt.kind == "visibility":
         if set(keys) - {"flip"}:
@@ -189,21 +189,9 @@ def _budget_metrics(cand, tgt: Target, keys, visibility) -> dict:
         out.update(compare_shaded(cand, tgt.image, penumbra=tgt.penumbra, valid=tgt.valid))
     if set(keys) & set(TECHNIQUE_SHADED_METRICS):
         # the same numbers as pipeline.technique_metrics (the `compare` report)
-        leak, over, rm, rmp = [0, 0], [0, 0], [], []
-        for n, (tv, lit) in tgt.lights.items():
-            v = _as_image(f"candidate visibility of light {n!r}", visibility[n], "visibility", tv.shape)
-            pl = compare_visibility(v, tv, lit)
-            rm.append(pl["rmse"])
-            rmp.append(pl["rmse_penumbra"])
-            umbra, lt = lit & (tv <= 0.02), lit & (tv >= 0.98)
-            leak[0] += int((umbra & (v > 0.5)).sum())
-            leak[1] += int(umbra.sum())
-            over[0] += int((lt & (v < 0.5)).sum())
-            over[1] += int(lt.sum())
-        out["leak_rate"] = leak[0] / leak[1] if leak[1] else 0.0
-        out["overdark_rate"] = over[0] / over[1] if over[1] else 0.0
-        out["vis_rmse"] = float(np.mean(rm))
-        out["vis_rmse_penumbra"] = float(np.nanmean(rmp)) if any(np.isfinite(rmp)) else float("nan")
+        out.update(pooled_visibility({
+            n: (_as_image(f"candidate visibility of light {n!r}", visibility[n], "visibility", tv.shape), tv, lit)
+            for n, (tv, lit) in tgt.lights.items()})[1])
     return out
 
 

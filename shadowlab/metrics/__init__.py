@@ -5,7 +5,8 @@ lit regions of the truth visibility and the light-leak and over-darkening rates;
 dicts of metrics a run stores per technique, light and scene.
 """
 
-from shadowlab.metrics.compare import SHADED_KEYS, VISIBILITY_KEYS, compare_shaded, compare_visibility
+from shadowlab.metrics.compare import (SHADED_KEYS, VISIBILITY_KEYS, compare_shaded, compare_visibility,
+                                       pooled_visibility)
 from shadowlab.metrics.image import (
     delta_e2000,
     delta_e2000_map,
@@ -36,5 +37,5 @@ __all__ = [
     "display_exposure", "srgb_encode",
     "PENUMBRA_LO", "PENUMBRA_HI", "penumbra_mask", "umbra_mask", "lit_mask",
     "leak_rate", "overdark_rate", "leak_mean", "overdark_mean",
-    "compare_visibility", "compare_shaded", "VISIBILITY_KEYS", "SHADED_KEYS",
+    "compare_visibility", "compare_shaded", "pooled_visibility", "VISIBILITY_KEYS", "SHADED_KEYS",
 ]

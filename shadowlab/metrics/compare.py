@@ -13,7 +13,7 @@ from shadowlab.io.exr import check_finite
 from shadowlab.metrics import image as _im
 from shadowlab.metrics import masks as _mk
 
-__all__ = ["compare_visibility", "compare_shaded", "SHADED_KEYS", "VISIBILITY_KEYS"]
+__all__ = ["compare_visibility", "compare_shaded", "pooled_visibility", "SHADED_KEYS", "VISIBILITY_KEYS"]
 
 VISIBILITY_KEYS = (
     "rmse", "mae", "rmse_penumbra", "mae_penumbra", "leak_rate", "overdark_rate",
@@ -52,6 +52,38 @@ def compare_visibility(vis, truth, valid=None) -> dict[str, float]:
         "overdark_mean": _mk.overdark_mean(x, t, valid_m),
         "penumbra_fraction": (float(np.count_nonzero(pen)) / n_valid) if n_valid else float("nan"),
     }
+
+
+def pooled_visibility(lights) -> tuple[dict, dict]:
+    """Visibility metrics of several lights: ``(per_light, pooled)``.
+
+    ``lights`` maps a light name to ``(vis, truth, valid)``; ``per_light`` holds
+    :func:`compare_visibility` of each, ``pooled`` the scene-level numbers of a ``compare`` report:
+    ``leak_rate`` and ``overdark_rate`` over the umbra / lit pixels of all lights together,
+    ``vis_rmse`` and ``vis_rmse_penumbra`` the means over lights (NaN if no light has a penumbra).
+
+    >>> import numpy as np
+    >>> t = np.array([[0.0, 1.0]])
+    >>> per, pooled = pooled_visibility({"a": (np.array([[1.0, 1.0]]), t, None),
+    ...                                  "b": (np.array([[0.0, 1.0]]), t, None)})
+    >>> pooled["leak_rate"], pooled["overdark_rate"]
+    (0.5, 0.0)
+    """
+    per_light, leak, over = {}, [0, 0], [0, 0]
+    for name, (vis, truth, valid) in lights.items():
+        per_light[name] = compare_visibility(vis, truth, valid)
+        x = _mk._scalar_vis("visibility", vis)
+        umbra, lit = _mk.umbra_mask(truth, valid), _mk.lit_mask(truth, valid)
+        leak[0] += int(np.count_nonzero(umbra & (x > 0.5)))
+        leak[1] += int(np.count_nonzero(umbra))
+        over[0] += int(np.count_nonzero(lit & (x < 0.5)))
+        over[1] += int(np.count_nonzero(lit))
+    rp = [d["rmse_penumbra"] for d in per_light.values()]
+    pooled = {"leak_rate": leak[0] / leak[1] if leak[1] else 0.0,
+              "overdark_rate": over[0] / over[1] if over[1] else 0.0,
+              "vis_rmse": float(np.mean([d["rmse"] for d in per_light.values()])),
+              "vis_rmse_penumbra": float(np.nanmean(rp)) if any(np.isfinite(rp)) else float("nan")}
+    return per_light, pooled
 
 
 def compare_shaded(img, truth, penumbra=None, valid=None) -> dict[str, float]:
