@@ -286,19 +286,9 @@ def _load_gate(path) -> dict:
 
     The target follows the ingest: each --channel light's visibility (V, or A with --against A),
     or the shaded / mitsuba image with --shaded."""
-    import sys
-    if sys.version_info >= (3, 11):
-        import tomllib
-    else:  # pragma: no cover
-        import tomli as tomllib
+    from ..gate.gatefile import read_toml
     p = Path(path)
-    if not p.is_file():
-        raise InputError(f"--gate {path}: no such file; write a TOML file with statistical = {{}} and/or "
-                         "budget = { rmse = 0.05 }")
-    try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"--gate {path}: not valid TOML ({e})") from e
+    data = read_toml(p, f"--gate {path}", "write a TOML file with statistical = {} and/or budget = { rmse = 0.05 }")
     unknown = sorted(set(data) - set(GATE_KEYS))
     if unknown:
         raise InputError(f"--gate {path}: unknown key(s) {', '.join(unknown)}; allowed: {', '.join(GATE_KEYS)} "

@@ -148,13 +148,17 @@ def plot_history(r: dict, path: Path, title: str):
         a2.set_ylabel(n)
         if r["params"][n].get("scale") == "log":
             a2.set_yscale("log")
-        a2.set_xlabel("evaluation")
-        a2.legend(fontsize=8, loc="best")
-        a2.grid(alpha=0.3)
-        fig.tight_layout()
-        fig.savefig(path)
-        plt.close(fig)
-        return
+    else:                                          # several: each one's position in its window
+        _plot_positions(a2, r, hist, x)
+    a2.set_xlabel("evaluation")
+    a2.legend(fontsize=8, loc="best")
+    a2.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _plot_positions(a2, r, hist, x):
     for n, d in r["params"].items():
         vals = [e["values"][n] for e in hist]
         if d["kind"] in ("float", "int"):
@@ -171,12 +175,6 @@ def plot_history(r: dict, path: Path, title: str):
             a2.plot(x, y, marker=".", ms=4, lw=1, label=f"{n} ({', '.join(map(str, opts))})")
     a2.set_ylim(-0.05, 1.05)
     a2.set_ylabel("position in window")
-    a2.set_xlabel("evaluation")
-    a2.legend(fontsize=8, loc="best")
-    a2.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
 
 
 # ------------------------------------------------------------------------------------------------

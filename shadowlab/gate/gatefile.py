@@ -229,14 +229,20 @@ def parse_gate_file(data: Mapping, path: Path) -> GateFile:
     return GateFile(path=path, references=refs, gates=tuple(out))
 
 
+def read_toml(path, label: str, missing: str) -> dict:
+    """The TOML file ``path`` as a dict; a missing file or bad syntax raises :class:`InputError`
+    naming ``label`` (``missing``: what to give instead)."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{label} does not exist; {missing}")
+    try:
+        return tomllib.loads(p.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"{label}: not valid TOML ({e}); fix the syntax at the position given") from None
+
+
 def load_gate_file(path) -> GateFile:
     """Read and validate a gate file; any problem raises :class:`InputError` naming file, gate and key."""
     p = Path(path)
-    if not p.is_file():
-        raise InputError(f"gate file {p} does not exist; give the path of a TOML gate file such as "
-                         "references/gates.toml")
-    try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"{p}: not valid TOML ({e}); fix the syntax at the position given") from None
+    data = read_toml(p, f"gate file {p}", "give the path of a TOML gate file such as references/gates.toml")
     return parse_gate_file(data, p)
