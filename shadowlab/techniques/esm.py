@@ -35,15 +35,16 @@ SIMD kernel), so its cost does not depend on how many points fall back; it is a 
 over the (n + 1)² taps (one compiled kernel for every ``kernel``). ``stats["fallback"]`` counts
 the flagged points per light and the AOV ``<light>.fallback`` marks them (1).
 
-Measured (tests/test_moments.py, ``step``: a platform under a plate, both ending at x = 0, the
-floor 0.4 below the platform, 128² map, 5×5): 208 points on the platform's top are shadowed
-(hard shadow map 0) but shown lit by ESM (≥ 0.99, PCF ≤ 0.6): mean error against the hard map
-0.97; both classifications flag all of them (threshold 1801 points, z-max 2289 of 9216) and
-bring the error down to PCF's 0.26. On ``contact`` at 7×7 the threshold flags 10 % of the
-128² pixels, z-max 62 %: every point of a receiver tilted in light space has farther depths in its
-footprint, so z-max sends most of an ordinary scene to PCF. At ``kernel`` = 1 ESM differs from
-``hard`` at 0.3 % of ``contact``'s pixels; on ``bench`` at 3×3 it leaks at 8.8 % of the umbra
-pixels (VSM 5.4 %), the non-planarity of the legs' footprints.
+``test_esm_non_planarity_failure_and_both_fallbacks`` (tests/test_moments.py) shows the
+failure on ``step`` (a platform under a plate, both ending at x = 0, the floor 0.4 below the
+platform, 5×5): points on the platform's top that the hard shadow map shadows are shown lit by
+ESM; both classifications flag every one of them and give them PCF's value, and the threshold
+flags fewer points than z-max. Every point of a receiver tilted in light space has farther
+depths in its footprint, so z-max sends most of an ordinary scene to PCF (``stats["fallback"]``
+counts how many). At ``kernel`` = 1 ESM is the hard shadow map except where the 2×2 lookup
+straddles an edge (``test_zero_filter_size_reduces_to_the_hard_shadow_map``); on ``bench`` the
+non-planarity of the legs' footprints makes it leak more than VSM (``shadowlab compare bench
+--techniques vsm,esm`` prints both leak rates).
 
 Only ``exponent`` is differentiable (the fallbacks are classifications: step functions); pass
 an ``mi.Float`` with gradients enabled (checked against finite differences in the tests). The

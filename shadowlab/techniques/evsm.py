@@ -25,13 +25,14 @@ says little; the other bound still holds. The warped moments reach 10³⁸, so t
 bound is evaluated in the log domain (:func:`~shadowlab.techniques.prefilter.chebyshev`): no
 overflow in the value or in its reverse-mode derivative.
 
-Measured: ``bench`` at 3×3 (Slika 3.10's filter), leak rate (truth umbra shown lit) 2.5 %
-against VSM's 5.4 % (the 2-component variant 9.2 %: the positive warp alone is ESM-like and
-fails on non-planar footprints, which the negative warp's bound catches; the 4-component
-result is never above the 2-component one, being the minimum of the two bounds). From 5×5 on
-the two come close on ``bench`` (8.7 % vs 9.3 %). On ``stack`` (t = 3) the warp removes the
-two-depth leak: t' = (e^{kb} − e^{ka})/(e^{kc} − e^{kb}) ≪ t. ``kernel`` = 1 differs from
-``hard`` at 0.3 % of ``contact``'s pixels.
+On ``bench`` at 3×3 (Slika 3.10's filter) EVSM shows fewer umbra pixels lit than VSM, and the
+4-component result is never above the 2-component one, being the minimum of the two bounds (the
+positive warp alone is ESM-like and fails on non-planar footprints, which the negative warp's
+bound catches): ``test_evsm_leaks_less_than_vsm_on_bench`` in tests/test_moments.py asserts
+both; ``shadowlab compare bench --techniques vsm,evsm`` prints the leak rates. On ``stack``
+(t = 3) the warp removes the two-depth leak: t' = (e^{kb} − e^{ka})/(e^{kc} − e^{kb}) ≪ t. At
+``kernel`` = 1 the result is the hard shadow map except where the 2×2 lookup straddles an edge
+(``test_zero_filter_size_reduces_to_the_hard_shadow_map``).
 
 ``exp_pos``, ``exp_neg``, ``min_variance`` and ``bleed`` are differentiable (pass an
 ``mi.Float`` with gradients enabled; AD and central differences agree on ``contact``).

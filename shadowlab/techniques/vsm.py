@@ -13,20 +13,24 @@ Properties (tests/test_moments.py):
 
 * two parallel planes (one casts, one receives, depths d1 < d2): μ = p·d2 + (1 − p)·d1,
   σ² = (p − p²)(d2 − d1)², p_max(d2) = p: VSM with the ``box`` prefilter equals PCF over the same
-  footprint (``pcf``, n×n ``grid`` of ``bilinear`` taps, softness 1). Measured on
-  ``parallel_planes`` (128² map, n = 1…9): |VSM − PCF| ≤ 2.7·10⁻⁵, all of it in the umbra, where
-  σ² = 0 is raised to σ²_min and p_max = σ²_min/(σ²_min + Δ²) instead of 0; in the penumbra
-  ≤ 1.5·10⁻⁶ (fp32). With ``min_variance`` = 0 the lit side fails (σ² = 0 and z̃ a rounding
-  error beyond μ: p_max = 0), the numerical problem §3.3 names;
+  footprint (``pcf``, n×n ``grid`` of ``bilinear`` taps, softness 1), up to σ²_min/Δ² in the
+  umbra, where σ² = 0 is raised to σ²_min and p_max = σ²_min/(σ²_min + Δ²) instead of 0, and up
+  to fp32 rounding elsewhere (``test_vsm_equals_pcf_for_two_parallel_planes`` asserts that bound
+  on ``parallel_planes`` for n = 1…9). With ``min_variance`` = 0 the lit side fails (σ² = 0 and
+  z̃ a rounding error beyond μ: p_max = 0), the numerical problem §3.3 names;
 * light leaking: a receiver at depth c behind two occluders at a < b, each covering half the
   filter region, gets p_max = t²/(2t² + 4t + 4), t = (b − a)/(c − b), instead of 0 (scene
-  ``stack``: t = 3, 9/34 = 0.2647 to 5·10⁻⁷ for any kernel at the centre of the map; with other
+  ``stack``: t = 3, 9/34 ≈ 0.2647 for any kernel at the centre of the map,
+  ``test_stack_reproduces_the_leak_formula_at_the_centre_texel``; with other
   shares q of A the two-depth bound q(1−q)Δx²/(q(1−q)Δx² + (Δy + qΔx)²) peaks at 0.36);
   ``bleed`` = p gives exactly Reduction(p_max, p), 0 for p ≥ the leak, at the cost of darker
   penumbrae (§3.3, Slika 3.5);
-* ``bench`` (3×3, Slika 3.10's filter): leak rate (umbra shown lit) 5.4 % against EVSM's 2.5 %:
-  the legs under the seat, whose footprints hold the closer seat and the farther floor;
-  ``kernel`` = 1 (no blur, bilinear lookup) differs from ``hard`` at 0.3 % of ``contact``'s pixels.
+* ``bench`` (3×3, Slika 3.10's filter): the legs under the seat, whose footprints hold the
+  closer seat and the farther floor, are umbra shown lit, more often than with EVSM
+  (``test_evsm_leaks_less_than_vsm_on_bench``; ``shadowlab compare bench --techniques vsm,evsm``
+  prints both leak rates);
+* ``kernel`` = 1 (no blur, bilinear lookup) is the hard shadow map except where the 2×2 lookup
+  straddles an edge (``test_zero_filter_size_reduces_to_the_hard_shadow_map`` bounds the share).
 
 The source's Code A.6 also clamps p_max ≥ 0.01 (so no point is ever fully dark); shadowlab
 does not: σ²_min is the only floor. ``min_variance`` and ``bleed`` move the visibility smoothly
