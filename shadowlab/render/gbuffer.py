@@ -70,9 +70,12 @@ def pixel_uv(width: int, height: int, ss: int = 1):
 def gbuffer(scene, ss: int = 1) -> GBuffer:
     """Cast camera rays through pixel (sub-)centres; see module docstring for the layout.
 
-    >>> gb = gbuffer(load("contact"))  # doctest: +SKIP
-    >>> gb.mask.shape
-    (128, 128, 1)
+    >>> from shadowlab.scene import load
+    >>> gb = gbuffer(load("contact", resolution=(8, 6)))
+    >>> gb.mask.shape, gb.view_depth.shape          # images are (height, width, channels)
+    ((6, 8, 1), (6, 8, 1))
+    >>> bool(gb.mask.any())
+    True
     """
     import drjit as dr
     import mitsuba as mi
