@@ -1,6 +1,6 @@
 """``shadowlab ingest SCENE IMAGE.exr``: compare an image rendered elsewhere with the stored truth.
 
-Two kinds of image (DESIGN.md, Reference; README.md, "Exchange with other renderers"):
+Two kinds of image (docs/ARCHITECTURE.md, Reference; README.md, "Exchange with other renderers"):
 
 * ``--channel NAME`` (repeatable): one light's **visibility** in [0, 1], a single EXR channel.
   The light is named by ``NAME=LIGHT``, else by a dot-separated part of NAME that is a light name

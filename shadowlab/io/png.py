@@ -1,4 +1,4 @@
-"""sRGB PNG output for looking at images (DESIGN.md: EXR for data, sRGB PNG only for looking).
+"""sRGB PNG output for looking at images (docs/ARCHITECTURE.md, Conventions: EXR for data, sRGB PNG only for looking).
 
 The encoder is a small dependency-free PNG writer (zlib + struct): 8-bit greyscale, RGB or RGBA,
 no interlacing, filter type 0 on every row. Files are written atomically (temporary sibling file,

@@ -1,4 +1,4 @@
-"""Error metrics of a technique against the ground truth (DESIGN.md, ``Metrics``).
+"""Error metrics of a technique against the ground truth (docs/ARCHITECTURE.md, ``Metrics``).
 
 ``image``: RMSE, MAE, PSNR, SSIM, FLIP, ΔE2000 and their error maps; ``masks``: umbra / penumbra /
 lit regions of the truth visibility and the light-leak and over-darkening rates; ``compare``: the

@@ -1,6 +1,6 @@
 """Regions of the ground-truth visibility and the shadow-specific error rates.
 
-The truth visibility ``t`` of a pixel classifies it (DESIGN.md, ``Metrics``):
+The truth visibility ``t`` of a pixel classifies it (docs/ARCHITECTURE.md, ``Metrics``):
 
 * umbra     ``t <= PENUMBRA_LO`` (0.02)
 * penumbra  ``PENUMBRA_LO < t < PENUMBRA_HI`` (strictly between 0.02 and 0.98)

@@ -1,9 +1,9 @@
 """SceneSpec -> a loaded Mitsuba scene, its camera and its lights' emitters.
 
-Shapes are loaded with ``optimize=False`` so each keeps its own id (DESIGN.md, Dr.Jit facts);
+Shapes are loaded with ``optimize=False`` so each keeps its own id (docs/ARCHITECTURE.md, Dr.Jit facts);
 the shape id of a pixel in the G-buffer is the index into ``Scene.shape_names``.
 
-An alpha-tested shape (``alpha_texture``, 003_b5589b67cce60746.txt §2.4) gets Mitsuba's ``mask``
+An alpha-tested shape (``alpha_texture``, [Buljan 2020, §2.4]) gets Mitsuba's ``mask``
 BSDF around its diffuse BSDF, with a binary opacity texture (:func:`opacity_texture`), looked up
 at the hit's Mitsuba uv (rectangle: u = (x + 1)/2, v = (y + 1)/2 in its local [−1, 1]², image
 row 0 at v = 0; other shapes: Mitsuba's own uv, meshes: their uv, if any).

@@ -1,4 +1,4 @@
-"""Alpha textures of alpha-tested casters (003_b5589b67cce60746.txt §2.4, "Transparentni objekti").
+"""Alpha textures of alpha-tested casters ([Buljan 2020, §2.4], "Transparentni objekti").
 
 A shape's ``alpha_texture`` is an image file read with ``mitsuba.Bitmap`` (PNG, JPEG, EXR, …):
 
