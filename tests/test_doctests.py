@@ -33,10 +33,12 @@ def _modules_with_examples() -> list[str]:
 
 
 MODULES = _modules_with_examples()
+DOCS = sorted(p.name for p in (PACKAGE.parent / "docs").glob("*.md") if ">>> " in p.read_text(encoding="utf-8"))
 
 
 def test_the_package_has_examples_to_run():
     assert len(MODULES) >= 10, MODULES
+    assert "ARCHITECTURE.md" in DOCS, DOCS
 
 
 @pytest.mark.parametrize("name", MODULES)
@@ -49,3 +51,14 @@ def test_docstring_examples(name, mitsuba_backend):
     result = runner.summarize(verbose=False)
     assert result.attempted > 0, f"{name}: has '>>> ' lines but no example was found in a docstring"
     assert result.failed == 0, f"{name}: {result.failed} of {result.attempted} examples failed\n{out.getvalue()}"
+
+
+@pytest.mark.parametrize("name", DOCS)
+def test_examples_in_docs(name, mitsuba_backend):
+    """The ``>>>`` examples of docs/*.md (the code blocks without prompts are illustrations)."""
+    path = PACKAGE.parent / "docs" / name
+    test = doctest.DocTestParser().get_doctest(path.read_text(encoding="utf-8"), {}, name, str(path), 0)
+    runner = doctest.DocTestRunner(optionflags=FLAGS)
+    out = io.StringIO()
+    runner.run(test, out=out.write)
+    assert test.examples and runner.failures == 0, out.getvalue()
