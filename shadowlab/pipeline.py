@@ -13,7 +13,7 @@ import numpy as np
 
 from . import backend
 from .errors import InputError, ReferenceError_
-from .reference import store
+from .reference import sdf_truth, store
 from .reference.truth import render_truth
 
 
@@ -59,9 +59,8 @@ def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0
     t0 = time.perf_counter()
     frame = make_frame(sc, ss=ss, seed=seed)
     with _progress_bar(None, f"truth {sc.name}", progress) as bar:
-        if sc.spec.sdf:  # SDF-only objects: Mitsuba cannot see them; the MC cone reference (004 §3.3.1)
-            from .sdf import reference_hook
-            truth = reference_hook(frame, seed=seed, progress=bar.update)
+        if sc.kind == "sdf":  # SDF-only objects: Mitsuba cannot see them; the MC cone reference (004 §3.3.1)
+            truth = sdf_truth.render_truth(frame, seed=seed, progress=bar.update)
         else:
             truth = render_truth(frame, k=strata, target_se=target_se, max_rounds=max_rounds, seed=seed, spp=spp,
                                  progress=bar.update)
@@ -77,9 +76,8 @@ def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0
                         "mitsuba_spp": spp},
             "lights": [l.name for l in sc.lights], "stats": truth.stats, "machine": info}
     meta.update(sc.mitsuba_notes())  # e.g. alpha-tested casters that mi.render's direct integrator ignores
-    if sc.spec.sdf:
-        from .sdf.reference import NOTE, TRUTH_KIND
-        meta.update(truth=TRUTH_KIND, not_mitsuba_truth=NOTE)
+    if sc.kind == "sdf":
+        meta.update(truth=sdf_truth.TRUTH_KIND, not_mitsuba_truth=sdf_truth.NOTE)
         meta["samples"] = {"mc_cone_samples": truth.stats["mc_cone_samples"], "shadow_rays": truth.stats["shadow_rays"],
                            "mean_rays_per_pixel": meta["samples"]["mean_rays_per_pixel"], "mitsuba_spp": 0}
     path = store.save(truth, meta, dest, force=force)
