@@ -13,8 +13,14 @@ import numpy as np
 
 from . import backend
 from .errors import InputError, ReferenceError_
+from .metrics import compare_shaded, penumbra_mask, pooled_visibility
 from .reference import sdf_truth, store
 from .reference.truth import render_truth
+from .render.frame import make_frame
+from .render.shading import compose
+from .report import build
+from .scene import load
+from .techniques import base as tbase
 
 
 def _progress_bar(total_hint: int | None, desc: str, enabled: bool):
@@ -39,7 +45,6 @@ def parse_resolution(text) -> tuple | None:
 
 
 def load_scene(scene: str, resolution=None):
-    from .scene import load
     backend.init()
     return load(scene, resolution=resolution)
 
@@ -51,7 +56,6 @@ def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0
 
     ``ss``: s×s sub-pixel shading points per pixel (G-buffer supersampling); techniques compared
     with this reference are evaluated at the same points."""
-    from .render.frame import make_frame
     sc = load_scene(scene, resolution)
     dest = store.path_for(sc.name, sc.resolution, base)
     if dest.exists() and not force:
@@ -89,10 +93,9 @@ def run_techniques(frame, names: list[str], params: dict) -> dict:
     compiles its kernels) and a timed warm run. Returns {name: (ShadowResult, params, timing)}
     with timing = {"time_s": warm run, "first_run_s": first run}."""
     import drjit as dr
-    from .techniques import base
     out = {}
     for n in names:
-        t = base.get(n)
+        t = tbase.get(n)
         p = t.resolve(params.get(n, {}))
         times = []
         for _ in range(2):
@@ -108,8 +111,6 @@ def run_techniques(frame, names: list[str], params: dict) -> dict:
 
 def technique_metrics(frame, truth, result) -> tuple[dict, dict, dict]:
     """(metrics, per_light, images) of one ShadowResult against the truth."""
-    from .metrics import compare_shaded, penumbra_mask, pooled_visibility
-    from .render.shading import compose
     mask = truth.mask
     vis_imgs, lights = {}, {}
     pen = np.zeros_like(mask)
@@ -137,9 +138,6 @@ def compare(scene: str, techniques: list[str], sets: list[str] | None = None, ou
     ``params``: {technique: {param: value}} applied under ``sets`` (e.g. a preset's values);
     ``preset``: {name, path, values} of that preset, recorded in the run (metrics.json, report).
     """
-    from .render.frame import make_frame
-    from .report import build
-    from .techniques import base as tbase
     for n in techniques:
         tbase.get(n)  # unknown names fail before any rendering
     overrides = tbase.parse_sets(sets or [], techniques)
