@@ -205,7 +205,7 @@ def build(spec: SceneSpec) -> Scene:
     bb = probe.bbox()
     lo, hi = tuple(bb.min), tuple(bb.max)
     sb = None
-    if spec.sdf:  # SDF-only objects ([[sdf]], no Mitsuba twin) count for the scene's bounds too
+    if spec.kind == "sdf":  # SDF-only objects ([[sdf]], no Mitsuba twin) count for the scene's bounds too
         sb = sdf_bounds(spec.sdf)
     if sb is not None:
         lo = tuple(float(c) if not boxes else min(a, float(c)) for a, c in zip(lo, sb[0]))

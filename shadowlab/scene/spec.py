@@ -127,7 +127,7 @@ class SceneSpec:
     shapes: tuple
     description: str = ""
     source: str = ""             # path of the TOML file (not part of the hash)
-    sdf: tuple = ()              # [[sdf]] tables (shadowlab.sdf.spec): SDF-only objects, no Mitsuba twin
+    sdf: tuple = ()              # [[sdf]] tables (shadowlab.scene.sdf_spec): SDF-only objects, no Mitsuba twin
 
     @property
     def kind(self) -> str:
