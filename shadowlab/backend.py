@@ -18,7 +18,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from .errors import EnvironmentProblem
+from .errors import EnvironmentProblem, InputError
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
@@ -102,7 +102,6 @@ def init(variant: str | None = None, threads: int | None = None, check: bool = T
                                      "initialised in this process; run a new process to switch")
         return variant
     if variant not in SUPPORTED_VARIANTS:
-        from .errors import InputError
         raise InputError(f"unknown variant {variant!r}; choose one of {', '.join(SUPPORTED_VARIANTS)}")
     try:
         import mitsuba  # noqa: F401

@@ -9,7 +9,20 @@ from typing import List, Optional
 
 import typer
 
-from .errors import ShadowlabError
+from . import backend
+from .bench import run as run_bench
+from .errors import GateFailure, ShadowlabError
+from .exchange.export import export_scene
+from .exchange.ingest import ingest as run_ingest
+from .fit import Budget, fit as run_fit
+from .fit.preset import load as load_preset
+from .fit.report import summary_table as fit_table
+from .gate.runner import run_gate_file
+from .pipeline import compare as cmp, parse_resolution, reference as ref
+from .reference.store import list_references
+from .report import summary_table
+from .scene.spec import builtin_names, load_spec, resolve
+from .techniques import base
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Real-time shadow techniques against Mitsuba 3 ground truth.")
@@ -18,7 +31,6 @@ VariantOpt = typer.Option(None, "--variant", help="Mitsuba variant: llvm_ad_rgb 
 
 
 def _init(variant):
-    from . import backend
     backend.init(variant)
 
 
@@ -29,7 +41,6 @@ def _split(csv: str) -> list[str]:
 @app.command()
 def scenes(names: bool = typer.Option(False, "--names", help="Only the names, one per line.")):
     """List the built-in scenes."""
-    from .scene.spec import builtin_names, load_spec, resolve
     for n in builtin_names():
         if names:
             typer.echo(n)
@@ -44,7 +55,6 @@ def scenes(names: bool = typer.Option(False, "--names", help="Only the names, on
 @app.command()
 def techniques(markdown: bool = typer.Option(False, "--markdown", help="Print Markdown tables (README).")):
     """List the registered techniques with their parameter tables."""
-    from .techniques import base
     for n in base.names():
         t = base.get(n)
         if markdown:
@@ -67,7 +77,6 @@ def reference(scene: str = typer.Argument(..., help="Built-in scene name or path
               ss: int = typer.Option(1, "--ss", min=1, max=8, help="s×s shading points per pixel (supersampling)."),
               variant: Optional[str] = VariantOpt):
     """Render and store the Mitsuba ground truth of a scene."""
-    from .pipeline import parse_resolution, reference as ref
     _init(variant)
     path, meta = ref(scene, parse_resolution(resolution), force=force, seed=seed, target_se=target_se, spp=spp, ss=ss)
     typer.echo(f"reference written to {path}: worst standard error {meta['max_std_error']:.4f}, "
@@ -77,7 +86,6 @@ def reference(scene: str = typer.Argument(..., help="Built-in scene name or path
 @app.command()
 def references():
     """List the stored references."""
-    from .reference.store import list_references
     for r in list_references():
         m = r["meta"]
         typer.echo(f"{r['scene']:18s} {r['resolution']:10s} worst se {m.get('max_std_error', float('nan')):.4f}  "
@@ -85,8 +93,6 @@ def references():
 
 
 def _compare(scene, techs, sets, out, resolution, variant, preset=None):
-    from .pipeline import compare as cmp, parse_resolution
-    from .report import summary_table
     _init(variant)
     run = cmp(scene, techs, sets, Path(out) if out else None, parse_resolution(resolution),
               params=preset.values if preset else None, preset=preset.info() if preset else None)
@@ -107,7 +113,6 @@ def compare(scene: str = typer.Argument(..., help="Built-in scene name or path t
             resolution: Optional[str] = typer.Option(None, "--resolution", "-r"),
             variant: Optional[str] = VariantOpt):
     """Compare techniques with the ground truth; write index.html, summary.md, metrics.json."""
-    from .fit.preset import load as load_preset
     out = out or f"reports/{Path(scene).stem}"
     pre = load_preset(preset) if preset else None
     techs = _split(techniques_) if techniques_ is not None else list(pre.values) if pre else ["hard", "pcf"]
@@ -117,7 +122,6 @@ def compare(scene: str = typer.Argument(..., help="Built-in scene name or path t
 @app.command()
 def demo(out: str = typer.Option("reports/demo", "--out", "-o"), variant: Optional[str] = VariantOpt):
     """Compare every registered technique on the built-in `contact` scene and print the table."""
-    from .techniques import base
     _compare("contact", base.names(), [], out, None, variant)
 
 
@@ -145,9 +149,6 @@ def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a 
         resolution: Optional[str] = typer.Option(None, "--resolution", "-r"),
         variant: Optional[str] = VariantOpt):
     """Fit technique parameters to the ground truth; write DIR/fit.json, index.html, summary.md, preset.toml."""
-    from .fit import Budget, fit as run_fit
-    from .fit.report import summary_table as fit_table
-    from .pipeline import parse_resolution
     _init(variant)
     out = out or f"reports/fit/{Path(scene).stem}-{'all' if all_ else technique or 'fit'}"
     run = run_fit(scene, technique, params=params, method=method, loss=loss, all_techniques=all_, sets=set_,
@@ -169,8 +170,6 @@ def export(scene: str = typer.Argument(..., help="Built-in scene name or path to
            force: bool = typer.Option(False, "--force", help="Replace the exported files in an existing directory."),
            variant: Optional[str] = VariantOpt):
     """Export a scene for another renderer: Mitsuba XML, PLY meshes, camera.json, lights.json."""
-    from .exchange.export import export_scene
-    from .pipeline import parse_resolution
     _init(variant)
     m = export_scene(scene, Path(out), resolution=parse_resolution(resolution), segments=segments, spp=spp,
                      force=force)
@@ -196,9 +195,6 @@ def ingest(scene: str = typer.Argument(..., help="Built-in scene name or path to
            gate: Optional[str] = typer.Option(None, "--gate", help="Gate file to run on the image (exit 1 on failure)."),
            variant: Optional[str] = VariantOpt):
     """Compare an image rendered elsewhere with the stored ground truth; write a report."""
-    from .exchange.ingest import ingest as run_ingest
-    from .pipeline import parse_resolution
-    from .report import summary_table
     out = out or f"reports/ingest/{Path(scene).stem}"
     run = run_ingest(scene, image, channels=channel, shaded=shaded, layer=layer, against=against,
                      resolution=parse_resolution(resolution), out=Path(out), gate=gate)
@@ -213,7 +209,6 @@ def ingest(scene: str = typer.Argument(..., help="Built-in scene name or path to
         for line in g["lines"]:
             typer.echo(line)
         if not g["passed"]:
-            from .errors import GateFailure
             raise GateFailure(f"gate failed on {image}: {', '.join(g['failed'])}")
 
 
@@ -223,8 +218,6 @@ def gate(gatefile: str = typer.Argument(..., help="Gate file (TOML), e.g. refere
          only: Optional[str] = typer.Option(None, "--only", help="Comma-separated gate names to run."),
          variant: Optional[str] = VariantOpt):
     """Gate candidates against stored references; exit 0 pass, 1 a gate failed, 2 bad input."""
-    from .errors import GateFailure
-    from .gate.runner import run_gate_file
     code, results = run_gate_file(gatefile, out_dir=Path(out), only=_split(only) if only else None, variant=variant,
                                   echo=typer.echo)
     if code:
@@ -238,7 +231,6 @@ def bench(out: str = typer.Option("reports/bench", "--out", "-o"),
           only: Optional[str] = typer.Option(None, "--only", help="Run one part: sdf (SDF soft shadows, sdf.md)."),
           variant: Optional[str] = VariantOpt):
     """Measure ground-truth throughput and technique compile / warm run times."""
-    from .bench import run as run_bench
     _init(variant)
     path_md = run_bench(Path(out), quick=quick, only=only)
     typer.echo(Path(path_md).read_text())

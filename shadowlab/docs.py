@@ -10,12 +10,13 @@ from __future__ import annotations
 import re
 import sys
 from pathlib import Path
+from .scene.spec import builtin_names, load_spec, resolve
+from .techniques import base
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def scenes_section() -> str:
-    from .scene.spec import builtin_names, load_spec, resolve
     rows = ["| scene | lights | description |", "|---|---|---|"]
     for n in builtin_names():
         s = load_spec(resolve(n))
@@ -25,7 +26,6 @@ def scenes_section() -> str:
 
 
 def techniques_section() -> str:
-    from .techniques import base
     parts = []
     for n in base.names():
         t = base.get(n)

@@ -13,8 +13,14 @@ import numpy as np
 
 from . import backend
 from .errors import InputError, ReferenceError_
-from .reference import store
+from .metrics import compare_shaded, penumbra_mask, pooled_visibility
+from .reference import sdf_truth, store
 from .reference.truth import render_truth
+from .render.frame import make_frame
+from .render.shading import compose
+from .report import build
+from .scene import load
+from .techniques import base as tbase
 
 
 def _progress_bar(total_hint: int | None, desc: str, enabled: bool):
@@ -39,7 +45,6 @@ def parse_resolution(text) -> tuple | None:
 
 
 def load_scene(scene: str, resolution=None):
-    from .scene import load
     backend.init()
     return load(scene, resolution=resolution)
 
@@ -51,7 +56,6 @@ def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0
 
     ``ss``: s×s sub-pixel shading points per pixel (G-buffer supersampling); techniques compared
     with this reference are evaluated at the same points."""
-    from .render.frame import make_frame
     sc = load_scene(scene, resolution)
     dest = store.path_for(sc.name, sc.resolution, base)
     if dest.exists() and not force:
@@ -59,9 +63,8 @@ def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0
     t0 = time.perf_counter()
     frame = make_frame(sc, ss=ss, seed=seed)
     with _progress_bar(None, f"truth {sc.name}", progress) as bar:
-        if sc.spec.sdf:  # SDF-only objects: Mitsuba cannot see them; the MC cone reference (004 §3.3.1)
-            from .sdf import reference_hook
-            truth = reference_hook(frame, seed=seed, progress=bar.update)
+        if sc.kind == "sdf":  # SDF-only objects: Mitsuba cannot see them; the MC cone reference (004 §3.3.1)
+            truth = sdf_truth.render_truth(frame, seed=seed, progress=bar.update)
         else:
             truth = render_truth(frame, k=strata, target_se=target_se, max_rounds=max_rounds, seed=seed, spp=spp,
                                  progress=bar.update)
@@ -77,9 +80,8 @@ def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0
                         "mitsuba_spp": spp},
             "lights": [l.name for l in sc.lights], "stats": truth.stats, "machine": info}
     meta.update(sc.mitsuba_notes())  # e.g. alpha-tested casters that mi.render's direct integrator ignores
-    if sc.spec.sdf:
-        from .sdf.reference import NOTE, TRUTH_KIND
-        meta.update(truth=TRUTH_KIND, not_mitsuba_truth=NOTE)
+    if sc.kind == "sdf":
+        meta.update(truth=sdf_truth.TRUTH_KIND, not_mitsuba_truth=sdf_truth.NOTE)
         meta["samples"] = {"mc_cone_samples": truth.stats["mc_cone_samples"], "shadow_rays": truth.stats["shadow_rays"],
                            "mean_rays_per_pixel": meta["samples"]["mean_rays_per_pixel"], "mitsuba_spp": 0}
     path = store.save(truth, meta, dest, force=force)
@@ -91,10 +93,9 @@ def run_techniques(frame, names: list[str], params: dict) -> dict:
     compiles its kernels) and a timed warm run. Returns {name: (ShadowResult, params, timing)}
     with timing = {"time_s": warm run, "first_run_s": first run}."""
     import drjit as dr
-    from .techniques import base
     out = {}
     for n in names:
-        t = base.get(n)
+        t = tbase.get(n)
         p = t.resolve(params.get(n, {}))
         times = []
         for _ in range(2):
@@ -110,8 +111,6 @@ def run_techniques(frame, names: list[str], params: dict) -> dict:
 
 def technique_metrics(frame, truth, result) -> tuple[dict, dict, dict]:
     """(metrics, per_light, images) of one ShadowResult against the truth."""
-    from .metrics import compare_shaded, penumbra_mask, pooled_visibility
-    from .render.shading import compose
     mask = truth.mask
     vis_imgs, lights = {}, {}
     pen = np.zeros_like(mask)
@@ -139,9 +138,6 @@ def compare(scene: str, techniques: list[str], sets: list[str] | None = None, ou
     ``params``: {technique: {param: value}} applied under ``sets`` (e.g. a preset's values);
     ``preset``: {name, path, values} of that preset, recorded in the run (metrics.json, report).
     """
-    from .render.frame import make_frame
-    from .report import build
-    from .techniques import base as tbase
     for n in techniques:
         tbase.get(n)  # unknown names fail before any rendering
     overrides = tbase.parse_sets(sets or [], techniques)

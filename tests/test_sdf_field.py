@@ -29,7 +29,7 @@ def dist(sdf, pts) -> np.ndarray:
 
 def test_examples_in_docstrings_run():
     from shadowlab.sdf import soft as SO
-    from shadowlab.sdf import spec as S
+    from shadowlab.scene import sdf_spec as S
     from shadowlab.sdf import trace as T
     for mod in (F, T, S, SO):
         res = doctest.testmod(mod, extraglobs={"np": np})
@@ -265,7 +265,7 @@ def test_twins_of_the_mitsuba_primitives_have_the_same_surface():
     """Points on each Mitsuba shape's surface (Mitsuba's own sample_position) are on the twin's
     zero set, and its normals agree with the twin's gradient (outside of rectangle edges)."""
     from shadowlab.scene import load
-    from shadowlab.sdf import sdf_of
+    from shadowlab.scene.twins import sdf_of
     sc = load("sdf_composite")
     sdf = sdf_of(sc)
     by_name = {p.name: p for p in sdf.primitives}
@@ -290,7 +290,7 @@ def test_twins_of_the_mitsuba_primitives_have_the_same_surface():
 
 def test_scenes_with_meshes_or_alpha_have_no_sdf_and_twin_scenes_do(tmp_path):
     from shadowlab.scene import load
-    from shadowlab.sdf import sdf_of
+    from shadowlab.scene.twins import sdf_of
     assert sdf_of(load("foliage")) is None          # alpha-tested cards
     for name in ("contact", "analytic_sphere", "sdf_simple", "sdf_thin", "sdf_pointed"):
         s = sdf_of(load(name))
@@ -337,7 +337,7 @@ type = "mandelbulb"
 translate = [3, 1, 0]
 """)
     assert spec.shapes == () and len(spec.sdf) == 2 and spec.sdf[1]["name"] == "sdf1"
-    from shadowlab.sdf.spec import build_objects
+    from shadowlab.scene.sdf_spec import build_objects
     nut, bulb = build_objects(spec.sdf)
     assert nut.name == "nut" and nut.albedo == (0.2, 0.3, 0.4) and isinstance(bulb.child, F.Mandelbulb)
     # the hole: centre of the nut is outside the solid by 0.5·0.4 − 0.01

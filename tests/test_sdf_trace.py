@@ -8,9 +8,10 @@ from shadowlab import backend
 from shadowlab.errors import InputError
 from shadowlab.render.gbuffer import gbuffer, vec_numpy
 from shadowlab.scene import load
-from shadowlab.sdf import Mandelbulb, Sphere, cone_trace, hard_visibility, sdf_of, sphere_trace
-from shadowlab.sdf.gbuffer import SDFGBuffer, cone_gbuffer, pixel_tan_alpha
-from shadowlab.sdf.gbuffer import unshadowed as sdf_unshadowed
+from shadowlab.render.sdf_gbuffer import SDFGBuffer, cone_gbuffer, pixel_tan_alpha
+from shadowlab.render.sdf_gbuffer import unshadowed as sdf_unshadowed
+from shadowlab.scene.twins import sdf_of
+from shadowlab.sdf import Mandelbulb, Sphere, cone_trace, hard_visibility, sphere_trace
 
 backend.init()
 import drjit as dr  # noqa: E402
@@ -263,7 +264,7 @@ def test_mandelbulb_reference_is_not_a_mitsuba_truth(tmp_path):
     """`shadowlab reference mandelbulb`: the Monte-Carlo cone reference (its meta.json says the
     truth is not Mitsuba's); A and V come from the same rays (one set per light)."""
     from shadowlab import pipeline
-    from shadowlab.sdf import reference as sref
+    from shadowlab.reference import sdf_truth as sref
     path, meta = pipeline.reference("mandelbulb", (32, 32), base=tmp_path, progress=False)
     assert meta["truth"] == sref.TRUTH_KIND and "not a Mitsuba truth" in meta["not_mitsuba_truth"]
     from shadowlab.reference import store

@@ -60,11 +60,12 @@ def single_ray(case, eps, variant="linear", i_max=4096, residual=True):
     """Visibility, relative distance and plane residual of the single ray at the frame's points."""
     import drjit as dr
     import mitsuba as mi
+    from shadowlab.scene.lights import light_sphere
     from shadowlab.sdf import soft
     from shadowlab.techniques.sdf_shadows import SURFACE_RADIUS, surface_points
     fr = case["frame"]
     o, R0 = surface_points(fr, SURFACE_RADIUS.default)
-    c, R = soft.light_sphere(case["scene"], case["light"])
+    c, R = light_sphere(case["scene"], case["light"])
     cone = soft.make_cone(o, R0, c, dr.opaque(mi.Float, R), "A", bbox=soft.bounds(fr.sdf))
     m = soft.march(fr.sdf, cone, variant, eps=eps, i_max=i_max)
     res = fr.image(soft.plane_residual(fr.sdf, m)) if residual else None
@@ -122,10 +123,11 @@ def test_hard_equals_point_light_visibility_except_within_one_pixel_of_edges(sim
     import drjit as dr
     import mitsuba as mi
     from scipy.ndimage import maximum_filter, minimum_filter
+    from shadowlab.scene.lights import light_sphere
     from shadowlab.sdf import soft
     fr, sc = simple["frame"], simple["scene"]
     gb = fr.gbuffer
-    c, R = soft.light_sphere(sc, simple["light"])
+    c, R = light_sphere(sc, simple["light"])
     o = mi.Vector3f(gb.p) + mi.Vector3f(gb.ng) * 1e-3
     to = mi.Vector3f(*map(float, c)) - o
     d = dr.norm(to)
@@ -169,10 +171,11 @@ def test_the_light_below_the_receivers_horizon_darkens_the_single_ray(simple):
     unshadowed light, which gets nothing from there) and A both stay 1. A model difference of
     the thesis' visibility term, measured: mean 0.87 on such pixels of sdf_simple."""
     from shadowlab.render.gbuffer import vec_numpy
+    from shadowlab.scene.lights import light_sphere
     from shadowlab.sdf import soft
     fr = simple["frame"]
     gb = fr.gbuffer
-    c, R = soft.light_sphere(simple["scene"], simple["light"])
+    c, R = light_sphere(simple["scene"], simple["light"])
     P, N = vec_numpy(gb.p), vec_numpy(gb.ng)
     D = np.asarray(c)[None] - P
     dist = np.linalg.norm(D, axis=1)

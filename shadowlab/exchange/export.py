@@ -42,8 +42,13 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import __version__, backend
 from ..errors import InputError, SceneError
 from ..io.jsonio import write_json_atomic
+from ..io.png import encode_png
+from ..scene import lights as lights_mod
+from ..scene.build import build, sensor_dict, shape_dicts
+from ..scene.spec import SceneSpec, load_spec, resolve
 from .mesh import matrix_of, sagitta, triangulate
 from .mitsuba_xml import dict_to_xml
 from .ply import write_ply
@@ -110,7 +115,6 @@ def _rows(M) -> list:
 
 def camera_info(scene) -> dict:
     """camera.json of a built :class:`shadowlab.scene.Scene` (its Mitsuba sensor is the truth's camera)."""
-    from ..scene.build import sensor_dict
     cam = scene.spec.camera
     W, H = (int(x) for x in cam.resolution)
     c2w = matrix_of(scene.sensor.world_transform())
@@ -172,7 +176,6 @@ def _translate(p) -> np.ndarray:
 
 def light_info(light, mitsuba_dict: dict, ply: str | None) -> dict:
     """lights.json entry of one LightSpec and the Mitsuba dict it becomes."""
-    from ..scene import lights as lights_mod
     qty, value = lights_mod.emission(light)
     k = light.kind
     d = mitsuba_dict
@@ -265,8 +268,6 @@ def _texture_files(d, owner: str, save_bitmap):
 def _scene_dicts(sc, spp: int, mesh_files: dict | None, save_bitmap):
     """(dict for scene.xml, per-shape Mitsuba dicts, per-light dicts); with ``mesh_files`` the shapes
     and area lights are PLY shapes (scene_mesh.xml). Opacity tensors become files (``save_bitmap``)."""
-    from ..scene import lights as lights_mod
-    from ..scene.build import sensor_dict, shape_dicts
     d = {"type": "scene"}
     shapes = {}
     for s in sc.spec.shapes:
@@ -319,10 +320,6 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
     ``meshes/``, ``textures/`` directories are replaced). Everything is written to a temporary sibling
     directory first, checked by loading both XML files with ``mi.load_file`` (``verify``), and only
     then moved into place: a failed export leaves ``out`` as it was."""
-    from .. import __version__, backend
-    from ..io.png import encode_png
-    from ..scene.build import build
-    from ..scene.spec import SceneSpec, load_spec, resolve
     if not isinstance(segments, int) or not 3 <= segments <= 4096:
         raise InputError(f"--segments {segments!r}: expected an integer in 3..4096 (tessellation of curved shapes)")
     if not isinstance(spp, int) or spp < 1:

@@ -29,6 +29,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, ReferenceError_
+from ..gate import check, parse_thresholds
+from ..gate.gatefile import read_toml
+from ..io.exr import check_finite, read_exr
+from ..metrics import compare_shaded, compare_visibility, penumbra_mask
+from ..reference import store
+from ..report import build
+from ..scene.spec import load_spec, resolve
 
 __all__ = ["ingest", "CHANNEL_AGAINST", "SHADED_AGAINST"]
 
@@ -76,7 +83,6 @@ def _pick_shaded(ch: dict, layer: str | None, image: Path):
 
 
 def _finite(image: Path, what: str, a: np.ndarray) -> None:
-    from ..io.exr import check_finite
     check_finite(f"{image}: {what}", a)  # count and first pixel (x, y), row 0 at the top
 
 
@@ -111,10 +117,6 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
     ``metrics.json`` holds, plus ``images``). ``out``: write index.html, summary.md and
     metrics.json there (:func:`shadowlab.report.build`). ``resolution``: the reference's (W, H);
     default the image's size. ``gate``: a gate file, run on the image (exit 1 when it fails)."""
-    from ..io.exr import read_exr
-    from ..metrics import compare_shaded, compare_visibility, penumbra_mask
-    from ..reference import store
-    from ..scene.spec import load_spec, resolve
 
     spec = load_spec(resolve(scene))
     image = Path(image)
@@ -265,7 +267,6 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
     if gate is not None:
         run["gate"] = _gate_results(g, truth, ch, image, shaded, img if shaded else None, picked, against, lit)
     if out is not None:
-        from ..report import build
         build(Path(out), run)
     return run
 
@@ -286,7 +287,6 @@ def _load_gate(path) -> dict:
 
     The target follows the ingest: each --channel light's visibility (V, or A with --against A),
     or the shaded / mitsuba image with --shaded."""
-    from ..gate.gatefile import read_toml
     p = Path(path)
     data = read_toml(p, f"--gate {path}", "write a TOML file with statistical = {} and/or budget = { rmse = 0.05 }")
     unknown = sorted(set(data) - set(GATE_KEYS))
@@ -295,7 +295,6 @@ def _load_gate(path) -> dict:
                          "(the image and the reference come from the ingest command line)")
     if "std_error" in data and "variance" in data:
         raise InputError(f"--gate {path}: give std_error or variance, not both")
-    from ..gate import parse_thresholds
     parse_thresholds({k: data[k] for k in ("statistical", "budget") if k in data}, where=f"--gate {path}")
     return {"name": str(data.get("name", p.stem)), "thresholds": {k: data[k] for k in ("statistical", "budget") if k in data},
             "spread": ("std_error", data["std_error"]) if "std_error" in data else
@@ -331,7 +330,6 @@ def _spread_channel(g, ch, light, image, shaded):
 
 def _gate_results(g, truth, ch, image, shaded, img, picked, against, lit) -> dict:
     """Run the gate on the ingested image; returns the JSON summary stored in the run."""
-    from ..gate import check
     results = []
     if shaded:
         var = _spread_channel(g, ch, None, image, True)

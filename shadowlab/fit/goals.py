@@ -22,6 +22,11 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from .. import backend
+from ..io.jsonio import write_json_atomic
+from ..techniques.pcss import scene_light_size
+from . import run as R
+from .objective import Objective
 
 SCENES = ("parallel_planes", "analytic_sphere", "contact", "cornell", "two_lights")
 STARTS = (1.0, 0.5, 2.0)
@@ -29,16 +34,12 @@ GRID_EXP = 10                                    # the finest grid has 2^10 + 1 
 
 
 def _fit(frame, truth, sc, method: str, start: float):
-    from . import run as R
     p = R.plan("pcss", frame, params=["light_size"], method=method, sets={"light_size": start})
     return R.execute(p, frame, truth, R.Budget()), p
 
 
 def scene_goals(name: str, starts=STARTS, grid_exp: int = GRID_EXP) -> dict:
     import drjit as dr
-    from ..techniques.pcss import scene_light_size
-    from . import run as R
-    from .objective import Objective
     sc, truth, meta, frame = R.prepare(name)
     s = float(np.mean([scene_light_size(l) for l in frame.lights]))
     fits, lo, hi = [], None, None
@@ -135,8 +136,6 @@ def main(argv=None):
     import argparse
     import datetime
     from pathlib import Path
-    from .. import backend
-    from ..io.jsonio import write_json_atomic
     ap = argparse.ArgumentParser(description="Measure the fitting goals (Adam vs grid search).")
     ap.add_argument("--out", default="reports/bench")
     ap.add_argument("--quick", action="store_true")

@@ -25,6 +25,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
+from ..metrics import flip_map
+from ..render.shading import compose
 
 LOSSES = {
     "rmse_penumbra": "visibility RMSE over the truth's penumbra (0.02 < V < 0.98), pooled over lights, "
@@ -145,8 +147,6 @@ class Objective:
         return float(loss[0])
 
     def _flip(self, res) -> float:
-        from ..metrics import flip_map
-        from ..render.shading import compose
         shaded = compose(self.frame, res.visibility)
         fm = flip_map(shaded, self.truth.shaded)
         return float(fm[self.penumbra].mean()) if self.penumbra.any() else float(fm[self.truth.mask].mean())

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import InputError
+from ..techniques import base
 
 RESERVED = ("name", "description", "meta")
 
@@ -64,7 +65,6 @@ def _parse_text(path: Path, text: str) -> dict:
 
 def from_dict(data, path: str = "<preset>") -> Preset:
     """Validate a preset mapping (see the module docstring)."""
-    from ..techniques import base
     if not isinstance(data, dict):
         raise InputError(f"preset {path}: expected a table of techniques, got {type(data).__name__}")
     name = data.get("name", Path(path).stem if path != "<preset>" else "preset")
@@ -172,3 +172,14 @@ def save(path, name: str, values: dict, description: str = "", meta: dict | None
             os.unlink(tmp)
         raise
     return p
+
+
+def preset_meta(run) -> dict:
+    """The ``[meta]`` table of the preset a fit run saves (``shadowlab fit --save-preset`` and the
+    report's preset.toml): scene, resolution, loss and each technique's loss before and after."""
+    meta = {"scene": run["scene"], "resolution": f"{run['resolution'][0]}x{run['resolution'][1]}",
+            "loss": run["loss"]}
+    for t, r in run["techniques"].items():
+        meta[f"{t}_loss_before"] = r["loss_before"]
+        meta[f"{t}_loss_after"] = r["loss_after"]
+    return meta

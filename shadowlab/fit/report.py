@@ -24,6 +24,7 @@ from ..errors import InputError
 from ..io.png import encode_png
 from ..report import images as _im
 from ..report.html import to_jsonable
+from . import preset as P
 
 OUTPUT_FILES = ("fit.json", "summary.md", "preset.toml", "index.html")
 
@@ -309,7 +310,6 @@ def to_json(run: dict) -> dict:
 
 def write(out: Path, run: dict) -> Path:
     """Write the report into ``out`` atomically; returns the path of index.html."""
-    from . import preset as P
     out = Path(out)
     check_out(out)
     data = to_json(run)
@@ -321,7 +321,7 @@ def write(out: Path, run: dict) -> Path:
         (tmp / "fit.json").write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
         (tmp / "summary.md").write_text(summary_table(run), encoding="utf-8")
         (tmp / "preset.toml").write_text(P.to_toml(run["preset"]["name"], run["preset"]["values"],
-                                                   "fitted by shadowlab fit", _meta(run)), encoding="utf-8")
+                                                   "fitted by shadowlab fit", P.preset_meta(run)), encoding="utf-8")
         (tmp / "index.html").write_text(text, encoding="utf-8")
         os.chmod(tmp, 0o755)
         _install(tmp, out)
@@ -329,11 +329,6 @@ def write(out: Path, run: dict) -> Path:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out / "index.html"
-
-
-def _meta(run):
-    from .run import _preset_meta
-    return _preset_meta(run)
 
 
 def _install(tmp: Path, out: Path):

@@ -16,6 +16,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, ShadowlabError
+from ..pipeline import load_scene, technique_metrics
+from ..reference import store
+from ..render.frame import make_frame
+from ..techniques import base as tbase
+from ..techniques.pcss import scene_light_size
+from . import preset as P
+from . import report as R
 from . import search as S
 from .objective import DIFFERENTIABLE_LOSSES, KernelCounter, Objective, check_loss
 
@@ -103,7 +110,6 @@ def reference_value(tech, name: str, value, frame):
     itself, except ``pcss.light_size`` 0 (= from the scene), which becomes the scene's light
     size (the mean over the lights of ``pcss.scene_light_size``)."""
     if tech.name == "pcss" and name == "light_size" and not isinstance(value, bool) and float(value) == 0.0:
-        from ..techniques.pcss import scene_light_size
         s = float(np.mean([scene_light_size(l) for l in frame.lights]))
         if s <= 0:
             raise InputError("pcss.light_size from the scene is 0 (delta lights): give a start value with "
@@ -164,8 +170,7 @@ class Plan:
 
 def plan(tech_name: str, frame, *, params=None, method="auto", loss="rmse_penumbra", sets=None, ranges=None) -> Plan:
     """Validate one technique's fit and build its search space (no rendering)."""
-    from ..techniques import base
-    tech = base.get(tech_name)
+    tech = tbase.get(tech_name)
     check_loss(loss)
     if method not in S.METHODS:
         raise InputError(f"--method {method!r}: expected one of {', '.join(S.METHODS)}")
@@ -197,7 +202,6 @@ def plan(tech_name: str, frame, *, params=None, method="auto", loss="rmse_penumb
 def execute(p: Plan, frame, truth, budget: Budget) -> dict:
     """Run one planned fit; returns the result dict (JSON-able, plus ``images``: numpy)."""
     import drjit as dr
-    from ..pipeline import technique_metrics
     obj = Objective(frame, truth, p.tech, p.loss, fixed=p.fixed)
     with KernelCounter() as counter:
         dr.sync_thread()
@@ -252,9 +256,6 @@ def execute(p: Plan, frame, truth, budget: Budget) -> dict:
 def prepare(scene: str, resolution=None, base: Path | None = None):
     """(scene, truth, meta, frame): the stored reference is required (never rendered here);
     a missing or stale one is a ReferenceError_ (exit 2) naming the command that makes it."""
-    from ..pipeline import load_scene
-    from ..reference import store
-    from ..render.frame import make_frame
     sc = load_scene(scene, resolution)
     truth, meta = store.load(sc.spec, sc.resolution, base)
     frame = make_frame(sc, ss=int(meta.get("supersampling", 1)), seed=int(meta.get("seed", 0)))
@@ -267,9 +268,6 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
         echo=None) -> dict:
     """The ``shadowlab fit`` job. Returns the run dict (``mode`` "one" or "all") and writes the
     report to ``out`` (if given) and the preset to ``save_preset`` (if given)."""
-    from ..techniques import base as tbase
-    from . import preset as P
-    from . import report as R
     budget = (budget or Budget()).check()
     if loss is not None:
         check_loss(loss)
@@ -330,20 +328,10 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
     if out is not None:
         run["out"] = str(R.write(Path(out), run))
     if save_preset is not None:
-        P.save(save_preset, pname, run["preset"]["values"], "fitted by shadowlab fit", _preset_meta(run))
+        P.save(save_preset, pname, run["preset"]["values"], "fitted by shadowlab fit", P.preset_meta(run))
         run["preset"]["path"] = str(save_preset)
     return run
 
 
 def _ref_path(sc, base):
-    from ..reference import store
     return store.path_for(sc.name, sc.resolution, base)
-
-
-def _preset_meta(run) -> dict:
-    meta = {"scene": run["scene"], "resolution": f"{run['resolution'][0]}x{run['resolution'][1]}",
-            "loss": run["loss"]}
-    for t, r in run["techniques"].items():
-        meta[f"{t}_loss_before"] = r["loss_before"]
-        meta[f"{t}_loss_after"] = r["loss_after"]
-    return meta

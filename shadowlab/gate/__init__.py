@@ -70,6 +70,7 @@ from __future__ import annotations
 
 from .check import Check, GateResult, Target, check, truth_target
 from .gatefile import GateFile, GateSpec, load_gate_file
+from .runner import run_gate_file as _run
 from .thresholds import Statistical, Thresholds, parse_thresholds
 
 __all__ = ["check", "Check", "GateResult", "Target", "truth_target", "Thresholds", "Statistical",
@@ -78,5 +79,4 @@ __all__ = ["check", "Check", "GateResult", "Target", "truth_target", "Thresholds
 
 def run_gate_file(path, out_dir=None, only=None, variant=None, echo=print):
     """Evaluate a gate file; see :func:`shadowlab.gate.runner.run_gate_file`."""
-    from .runner import run_gate_file as _run
     return _run(path, out_dir=out_dir, only=only, variant=variant, echo=echo)

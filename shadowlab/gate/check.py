@@ -10,9 +10,11 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.exr import check_finite
+from ..metrics import compare_shaded, compare_visibility, flip, penumbra_mask, pooled_visibility
+from ..reference.truth import mitsuba_render
 from .stats import bias_test, z_test
-from .thresholds import (SHADED_METRICS, TECHNIQUE_SHADED_METRICS, VISIBILITY_METRICS, Thresholds,
-                         higher_is_better, parse_thresholds)
+from .thresholds import (SHADED_METRICS, TECHNIQUE_SHADED_METRICS, Thresholds, VISIBILITY_METRICS, higher_is_better,
+                         parse_thresholds)
 
 __all__ = ["Check", "GateResult", "Target", "check", "truth_target", "TARGETS", "BOUND_SIGMAS"]
 
@@ -91,7 +93,6 @@ def mitsuba_dof() -> int:
     """Degrees of freedom of a stored ``mitsuba.var``: the variance of the mean over the passes of
     :func:`~shadowlab.reference.truth.mitsuba_render` (its default ``passes``, minus 1)."""
     import inspect
-    from ..reference.truth import mitsuba_render
     return int(inspect.signature(mitsuba_render).parameters["passes"].default) - 1
 
 
@@ -105,7 +106,6 @@ def truth_target(truth, target: str = "shaded", light: str | None = None) -> Tar
     * ``mitsuba``: Mitsuba's own ``direct`` image with its variance (for path-traced candidates),
       estimated from a few passes: ``dof`` = :func:`mitsuba_dof`.
     """
-    from ..metrics import penumbra_mask
     if target not in TARGETS:
         raise InputError(f"unknown target {target!r}; a gate compares with one of {', '.join(TARGETS)}")
     mask = np.asarray(truth.mask, bool)
@@ -177,7 +177,6 @@ def _fmt(v: float) -> str:
 
 
 def _budget_metrics(cand, tgt: Target, keys, visibility) -> dict:
-    from ..metrics import compare_shaded, compare_visibility, flip, pooled_visibility
     out: dict = {}
     if tgt.kind == "visibility":
         if set(keys) - {"flip"}:
@@ -242,7 +241,6 @@ def check(candidate, reference, thresholds, *, target: str = "shaded", light: st
         rv = None if reference_var is None else np.maximum(_as_image("reference variance", reference_var, kind, hw), 0)
         vm = _mask("valid", valid, hw)
         if penumbra is None and kind == "visibility":
-            from ..metrics import penumbra_mask
             pen = penumbra_mask(ref, vm)
         else:
             pen = None if penumbra is None else _mask("penumbra", penumbra, hw) & vm

@@ -18,9 +18,10 @@ except ModuleNotFoundError:  # pragma: no cover - python < 3.11
     import tomli as tomllib
 
 from ..errors import InputError, SceneError
+from ..scene.spec import load_spec, resolve
+from ..techniques import base as tbase
 from .check import TARGETS
-from .thresholds import (SHADED_METRICS, TECHNIQUE_SHADED_METRICS, VISIBILITY_METRICS, Thresholds,
-                         parse_thresholds)
+from .thresholds import SHADED_METRICS, TECHNIQUE_SHADED_METRICS, Thresholds, VISIBILITY_METRICS, parse_thresholds
 
 __all__ = ["CandidateSpec", "GateSpec", "GateFile", "load_gate_file", "parse_gate_file", "FORMAT_VERSION"]
 
@@ -101,7 +102,6 @@ def _str(where: str, key: str, v, required=False) -> str | None:
 
 
 def _scene(where: str, base: Path, v) -> tuple[str, object]:
-    from ..scene.spec import load_spec, resolve
     s = _str(where, "scene", v, required=True)
     if s.endswith(".toml"):
         p = Path(s) if Path(s).is_absolute() else (base / s)
@@ -123,7 +123,6 @@ def _candidate(where: str, base: Path, v, target: str, spec) -> CandidateSpec:
     kind = kinds[0]
     _keys(w, v, _CAND_KEYS[kind])
     if kind == "technique":
-        from ..techniques import base as tbase
         name = _str(w, "technique", v["technique"])
         params = v.get("params", {})
         if not isinstance(params, Mapping):

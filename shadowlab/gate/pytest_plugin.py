@@ -42,6 +42,12 @@ import re
 from pathlib import Path
 
 import pytest
+from ..errors import InputError
+from ..io.exr import read_exr, split_rgb, write_exr
+from ..io.jsonio import read_json, write_json_atomic
+from .check import GateResult, _as_image, check
+from .html import write_page
+from .thresholds import STAT_DEFAULTS, _ALL_METRICS, parse_thresholds
 
 _written_key = pytest.StashKey[list]()      # config: baselines written this run
 _skipped_key = pytest.StashKey[list]()      # config: baselines not written (their test failed)
@@ -93,8 +99,6 @@ class ShadowlabGate:
         if rep is None or not rep.passed:
             cfg.stash.setdefault(_skipped_key, []).extend(str(exr) for exr, *_ in self.pending)
             return
-        from ..io.exr import write_exr
-        from ..io.jsonio import write_json_atomic
         for exr, meta_path, ch, meta in self.pending:
             write_exr(exr, ch)
             # the JSON (written second) holds the EXR's hash: an update interrupted between the two
@@ -104,7 +108,6 @@ class ShadowlabGate:
             cfg.stash.setdefault(_written_key, []).append(str(exr))
 
     def paths(self, name: str) -> tuple[Path, Path]:
-        from ..errors import InputError
         if not isinstance(name, str) or not _NAME.match(name) or ".." in name.split("/"):
             raise InputError(f"shadowlab_gate: baseline name {name!r} must be letters, digits, '_', '-', '.', "
                              "with '/' between parts (e.g. 'pcf/contact')")
@@ -112,8 +115,6 @@ class ShadowlabGate:
 
     @staticmethod
     def _split(thresholds: dict):
-        from ..errors import InputError
-        from .thresholds import _ALL_METRICS, STAT_DEFAULTS, parse_thresholds
         use_stat = thresholds.pop("statistical", None)
         if use_stat is not None and not isinstance(use_stat, bool):
             raise InputError(f"shadowlab_gate: statistical must be True or False, got {use_stat!r}")
@@ -134,10 +135,6 @@ class ShadowlabGate:
                  stamp: str | None = None, **thresholds):
         import numpy as np
 
-        from ..errors import InputError
-        from ..io.exr import read_exr, split_rgb
-        from ..io.jsonio import read_json
-        from .check import GateResult, _as_image, check
         exr, meta_path = self.paths(name)
         th = self._split(dict(thresholds))
         arr = np.asarray(image)
@@ -196,7 +193,6 @@ class ShadowlabGate:
         res.info.update({"candidate": f"test {self.request.node.nodeid}", "reference": str(exr)})
         if not res.passed:
             if self.results_dir:
-                from .html import write_page
                 page = Path(self.results_dir) / f"{name.replace('/', '__')}.html"
                 write_page(page, [res], title=f"shadowlab_gate {name}")
                 extra = f"\nfailure page: {page}"

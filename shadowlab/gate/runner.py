@@ -15,9 +15,20 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import backend
 from ..errors import InputError
+from ..io.exr import read_exr
+from ..reference import store
+from ..reference.truth import LightTruth, Truth, render_truth
+from ..render.frame import make_frame
+from ..render.shading import compose
+from ..scene import load
+from ..scene.spec import load_spec, resolve
+from ..techniques import base as tbase
 from .check import GateResult, check, truth_target
 from .gatefile import GateFile, GateSpec, load_gate_file
+from .html import write_page
+from .junit import write_junit
 
 __all__ = ["run_gates", "run_gate_file", "exr_candidate", "truth_from_channels"]
 
@@ -26,7 +37,6 @@ __all__ = ["run_gates", "run_gate_file", "exr_candidate", "truth_from_channels"]
 def truth_from_channels(ch: dict):
     """A :class:`~shadowlab.reference.truth.Truth` from the channels of a shadowlab ``truth.exr``
     (another reference used as a candidate), or None if the file does not have that layout."""
-    from ..reference.truth import LightTruth, Truth
     lights = sorted(k[2:] for k in ch if k.startswith("V.") and not k.endswith(".se"))
     need = ["mask", "shaded.R", "shaded.G", "shaded.B", "shaded.var.R", "shaded.var.G", "shaded.var.B"]
     for n in lights:
@@ -64,7 +74,6 @@ def exr_candidate(path, target: str, light: str | None, channel: str | None = No
     ``R|G|B``, a visibility target for ``V.<light>``, ``shadow.<light>``, ``<light>`` or the only
     channel. The variance is ``variance`` (a prefix like the image's) or ``std_error`` squared; by
     default ``<P>.var`` (RGB or single) or ``<P>.se`` squared if present, else none (exact)."""
-    from ..io.exr import read_exr
     ch = read_exr(path)
     rgb = target != "visibility"
     if channel is None and variance is None and std_error is None:
@@ -116,7 +125,6 @@ class _Context:
         self.specs, self.truths, self.scenes, self.frames = {}, {}, {}, {}
 
     def spec(self, g: GateSpec):
-        from ..scene.spec import load_spec, resolve
         key = (g.scene, g.resolution)
         if key not in self.specs:
             spec = load_spec(resolve(g.scene))
@@ -124,7 +132,6 @@ class _Context:
         return self.specs[key]
 
     def truth(self, g: GateSpec):
-        from ..reference import store
         key = (g.scene, g.resolution)
         if key not in self.truths:
             spec = self.spec(g)
@@ -132,8 +139,6 @@ class _Context:
         return self.truths[key]
 
     def scene(self, g: GateSpec):
-        from .. import backend
-        from ..scene import load
         key = (g.scene, g.resolution)
         if key not in self.scenes:
             backend.init(self.variant)
@@ -141,7 +146,6 @@ class _Context:
         return self.scenes[key]
 
     def frame(self, g: GateSpec, seed: int | None = None):
-        from ..render.frame import make_frame
         _, meta = self.truth(g)
         seed = int(meta.get("seed", 0)) if seed is None else seed
         key = (g.scene, g.resolution, seed)
@@ -152,8 +156,6 @@ class _Context:
 
 def _technique_candidate(ctx: _Context, g: GateSpec):
     import drjit as dr
-    from ..render.shading import compose
-    from ..techniques import base as tbase
     frame = ctx.frame(g)
     t = tbase.get(g.candidate.technique)
     params = t.resolve(g.candidate.params)
@@ -165,7 +167,6 @@ def _technique_candidate(ctx: _Context, g: GateSpec):
 
 
 def _truth_candidate(ctx: _Context, g: GateSpec):
-    from ..reference.truth import render_truth
     _, meta = ctx.truth(g)
     if int(meta.get("seed", 0)) == g.candidate.seed:
         raise InputError(f"gate {g.name!r}: candidate seed {g.candidate.seed} is the reference's own seed, so the "
@@ -181,7 +182,6 @@ def _truth_candidate(ctx: _Context, g: GateSpec):
 
 def run_gate(ctx: _Context, g: GateSpec) -> GateResult:
     """Evaluate one gate of a loaded gate file."""
-    from ..reference import store
     t0 = time.perf_counter()
     truth, meta = ctx.truth(g)
     c = g.candidate
@@ -222,8 +222,6 @@ def run_gate_file(path, out_dir=None, only=None, variant=None, echo=print) -> tu
     """``shadowlab gate``: evaluate, print one line per check, write ``out_dir/junit.xml`` and
     ``out_dir/index.html``; returns (exit code 0 all passed / 1 a gate failed, results). The CLI
     turns 1 into :class:`~shadowlab.errors.GateFailure` (exit code 1)."""
-    from .html import write_page
-    from .junit import write_junit
     gf = load_gate_file(path)
     t0 = time.perf_counter()
     results = run_gates(gf, only=only, variant=variant, echo=echo)

@@ -3,11 +3,13 @@
 Every technique of a comparison reads the same FrameContext (DESIGN.md, data flow), so
 primary rays, unshadowed light and shadow maps are computed once and shared.
 
-``frame.sdf`` is the scene's signed distance field (:func:`shadowlab.sdf.sdf_of`), None for scenes
-with meshes. A scene whose objects all have Mitsuba twins keeps the Mitsuba G-buffer (techniques
-are then evaluated at the ground truth's own points); a scene with SDF-only objects (``[[sdf]]``,
-e.g. a Mandelbulb, which Mitsuba cannot see) gets the cone-traced G-buffer of 004 §2.9
-(:func:`shadowlab.sdf.gbuffer.cone_gbuffer`), and shadow maps, which Mitsuba ray casts, refuse it.
+``frame.sdf`` is the scene's signed distance field (:func:`shadowlab.scene.twins.sdf_of`), None for
+scenes with meshes. The scene's ``kind`` chooses the G-buffer: a ``"mitsuba"`` scene (every object
+has a Mitsuba twin, or none needs one) keeps the Mitsuba G-buffer (techniques are then evaluated at
+the ground truth's own points); an ``"sdf"`` scene (SDF-only objects, ``[[sdf]]``, e.g. a
+Mandelbulb, which Mitsuba cannot see) gets the cone-traced G-buffer of [Bálint 2019, §2.9]
+(:func:`shadowlab.render.sdf_gbuffer.cone_gbuffer`), and shadow maps, which Mitsuba ray casts,
+refuse it.
 """
 
 from __future__ import annotations
@@ -16,6 +18,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import InputError
+from ..scene.twins import sdf_of
+from . import sdf_gbuffer
 from .gbuffer import GBuffer, gbuffer, vec_numpy
 from .lightview import LightView, light_view
 from .shading import unshadowed
@@ -41,8 +46,7 @@ class FrameContext:
                    backface: bool = False) -> LightView:
         """The light's depth map, cast once per (light, resolution, depth bits, back faces)."""
         spec = self.scene.spec.light(light_name)
-        if self.scene.spec.sdf:
-            from ..errors import InputError
+        if self.scene.kind == "sdf":
             raise InputError(f"scene {self.scene.name!r} has SDF-only objects ([[sdf]]) that Mitsuba does not see, "
                              "so its shadow maps (Mitsuba ray casts from the light) would miss them; compare the "
                              "SDF techniques on it, or the shadow-map techniques on a scene with Mitsuba twins")
@@ -61,12 +65,10 @@ class FrameContext:
 
 
 def make_frame(scene, ss: int = 1, u_strata: int = 16, seed: int = 0) -> FrameContext:
-    """G-buffer at pixel (sub-)centres and U_L for every light (cone traced for scenes with
-    SDF-only objects, see the module docstring)."""
-    from ..sdf import sdf_of
+    """G-buffer at pixel (sub-)centres and U_L for every light (cone traced for ``"sdf"`` scenes,
+    see the module docstring)."""
     sdf = sdf_of(scene)
-    if scene.spec.sdf:
-        from ..sdf import gbuffer as sdf_gbuffer
+    if scene.kind == "sdf":
         gb = sdf_gbuffer.cone_gbuffer(scene, sdf, ss=ss)
         U = {l.name: sdf_gbuffer.unshadowed(scene, gb, l.name, k=u_strata, seed=seed) for l in scene.spec.lights}
     else:

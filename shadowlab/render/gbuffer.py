@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from ..scene.build import transparent
 
 
 @dataclass
@@ -127,7 +128,6 @@ def _through_alpha(mi_scene, si, ray):
     ray still on a transparent texel after MAX_ALPHA_LAYERS surfaces counts as a miss."""
     import drjit as dr
     import mitsuba as mi
-    from ..scene.build import transparent
     r = mi.Ray3f(ray)
     i = mi.UInt32(0)
     through = transparent(si)

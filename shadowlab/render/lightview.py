@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..scene import lights as lights_mod
+from ..scene.build import transparent
 
 MAX_HALF_FOV = math.radians(80.0)
 
@@ -345,6 +346,5 @@ def _skip(si, ray, backface, own_ptr, alpha=False):
     if backface:
         skip |= si.is_valid() & (dr.dot(si.n, ray.d) < 0)
     if alpha:
-        from ..scene.build import transparent
         skip |= transparent(si)
     return skip

@@ -20,7 +20,9 @@ import numpy as np
 
 from ..errors import SceneError
 from . import lights as lights_mod
+from .sdf_spec import bounds as sdf_bounds
 from .spec import SceneSpec, load_spec, resolve
+from .textures import AlphaTextureError, opacity_mask, read_alpha
 
 
 def _transform(s):
@@ -52,7 +54,6 @@ def opacity_texture(s) -> dict:
     transparent (null transmission 1). A fresh dict per call: loading takes the tensor over
     (a second ``mi.load_dict`` of the same dict finds it empty)."""
     import mitsuba as mi
-    from .textures import AlphaTextureError, opacity_mask, read_alpha
     try:
         a = read_alpha(s.alpha_texture)
     except AlphaTextureError as e:
@@ -150,6 +151,11 @@ class Scene:
         return self.spec.name
 
     @property
+    def kind(self) -> str:
+        """``"mitsuba"`` or ``"sdf"``: :attr:`shadowlab.scene.spec.SceneSpec.kind`."""
+        return self.spec.kind
+
+    @property
     def resolution(self):
         return tuple(self.spec.camera.resolution)
 
@@ -199,9 +205,8 @@ def build(spec: SceneSpec) -> Scene:
     bb = probe.bbox()
     lo, hi = tuple(bb.min), tuple(bb.max)
     sb = None
-    if spec.sdf:  # SDF-only objects ([[sdf]], no Mitsuba twin) count for the scene's bounds too
-        from ..sdf.spec import bounds
-        sb = bounds(spec.sdf)
+    if spec.kind == "sdf":  # SDF-only objects ([[sdf]], no Mitsuba twin) count for the scene's bounds too
+        sb = sdf_bounds(spec.sdf)
     if sb is not None:
         lo = tuple(float(c) if not boxes else min(a, float(c)) for a, c in zip(lo, sb[0]))
         hi = tuple(float(c) if not boxes else max(a, float(c)) for a, c in zip(hi, sb[1]))

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from ..errors import SceneError
 from .spec import LightSpec
 
@@ -114,3 +116,31 @@ def mitsuba_dict(light: LightSpec, scene_center, scene_radius) -> tuple[str, dic
         return key, {"type": "rectangle", "to_world": to_world, "emitter": {"type": "area", "radiance": rgb}}
     to_world = look @ T().scale([light.radius, light.radius, 1])  # disk, spot
     return key, {"type": "disk", "to_world": to_world, "emitter": {"type": "area", "radiance": rgb}}
+
+
+def light_sphere(scene, light, fit: str = "equal_area") -> tuple:
+    """(centre (3,), radius) of the sphere that stands for ``light`` (a LightSpec) in the SDF
+    soft-shadow algorithms of :mod:`shadowlab.sdf.soft` [Bálint 2019, §3.2, §5.4].
+
+    | light kind | centre | radius, ``fit="equal_area"`` | radius, ``fit="bounding"`` |
+    |---|---|---|---|
+    | sphere, point (r) | position | r | r |
+    | disk, spot (r) | position | r (the disk seen face-on) | r |
+    | rect w × h | position | √(w·h/π) (the disk of equal area) | ½√(w² + h²) [Bálint 2019, §5.4] |
+    | directional (θ) | scene centre − D·direction | D·tan(θ/2) | D·tan(θ/2) |
+
+    with D = ``SUN_DISTANCE`` scene radii, where the ground truth puts the sun's disk. Delta
+    lights (radius 0, θ = 0) give radius 0."""
+    if fit not in ("equal_area", "bounding"):
+        raise ValueError(f"fit must be equal_area or bounding, not {fit!r}")
+    k = light.kind
+    if k == "directional":
+        D = SUN_DISTANCE * float(scene.radius)
+        d = np.asarray(forward(light), dtype=np.float64)
+        c = np.asarray(scene.center, dtype=np.float64) - D * d
+        return c, D * math.tan(math.radians(light.angular_diameter) / 2)
+    c = np.asarray(light.position, dtype=np.float64)
+    if k == "rect":
+        w, h = light.size
+        return c, (math.sqrt(w * h / math.pi) if fit == "equal_area" else 0.5 * math.hypot(w, h))
+    return c, float(light.radius)

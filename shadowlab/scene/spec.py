@@ -9,7 +9,7 @@ description = "..."
 [[lights]]    name, kind = rect|disk|sphere|spot|point|directional, colour and power, size ...
 [[shapes]]    name, type = rectangle|disk|cube|sphere|cylinder|ply|obj, albedo, transform,
               alpha_texture = "textures/leaf.png", alpha_cutoff = 0.5 (alpha-tested casters)
-[[sdf]]       SDF-only objects without a Mitsuba twin (Mandelbulb, CSG, ...): see shadowlab.sdf.spec
+[[sdf]]       SDF-only objects without a Mitsuba twin (Mandelbulb, CSG, ...): see shadowlab.scene.sdf_spec
 ```
 
 Every error names the file, the key and what was expected (exit 2). No Mitsuba backend here:
@@ -33,6 +33,9 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 from ..errors import SceneError
+from ._reader import _Reader, rotations
+from .sdf_spec import parse_sdf_tables
+from .textures import AlphaTextureError, read_alpha
 
 LIGHT_KINDS = ("rect", "disk", "sphere", "spot", "point", "directional")
 SHAPE_TYPES = ("rectangle", "disk", "cube", "sphere", "cylinder", "ply", "obj")
@@ -124,7 +127,14 @@ class SceneSpec:
     shapes: tuple
     description: str = ""
     source: str = ""             # path of the TOML file (not part of the hash)
-    sdf: tuple = ()              # [[sdf]] tables (shadowlab.sdf.spec): SDF-only objects, no Mitsuba twin
+    sdf: tuple = ()              # [[sdf]] tables (shadowlab.scene.sdf_spec): SDF-only objects, no Mitsuba twin
+
+    @property
+    def kind(self) -> str:
+        """``"sdf"`` when the scene has SDF-only objects (``[[sdf]]``, which Mitsuba does not see:
+        its G-buffer is cone traced and its truth is the Monte-Carlo cone reference), else
+        ``"mitsuba"`` (Mitsuba's G-buffer and ground truth)."""
+        return "sdf" if self.sdf else "mitsuba"
 
     def digest(self) -> str:
         """SHA-256 of the scene's content (not its path); a reference stores it."""
@@ -159,87 +169,8 @@ class SceneSpec:
         return replace(self, camera=replace(self.camera, resolution=(int(w), int(h))))
 
 
-class _Reader:
-    """Typed access to a TOML table, with errors naming file, key and expectation."""
-
-    def __init__(self, path: str, where: str, table: dict):
-        self.path, self.where, self.t = path, where, table
-
-    def fail(self, key: str, expected: str, got=None):
-        shown = "" if got is None else f", got {got!r}"
-        raise SceneError(f"{self.path}: {self.where}{'.' if self.where else ''}{key}: expected {expected}{shown}")
-
-    def has(self, key):
-        return key in self.t
-
-    def str(self, key, default=None, choices=None):
-        if key not in self.t:
-            if default is None:
-                self.fail(key, "a string" + (f" (one of {', '.join(choices)})" if choices else ""), None)
-            return default
-        v = self.t[key]
-        if not isinstance(v, str):
-            self.fail(key, "a string", v)
-        if choices and v not in choices:
-            self.fail(key, f"one of {', '.join(choices)}", v)
-        return v
-
-    def num(self, key, default=None, lo=None, hi=None):
-        if key not in self.t:
-            if default is None:
-                self.fail(key, "a number (missing)")
-            return default
-        v = self.t[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            self.fail(key, "a finite number", v)
-        if (lo is not None and v < lo) or (hi is not None and v > hi):
-            self.fail(key, f"a number in [{lo}, {hi}]", v)
-        return float(v)
-
-    def int(self, key, default=None, choices=None, lo=None):
-        v = self.t.get(key, default)
-        if v is None:
-            self.fail(key, "an integer (missing)")
-        if isinstance(v, bool) or not isinstance(v, int):
-            self.fail(key, "an integer", v)
-        if choices and v not in choices:
-            self.fail(key, f"one of {', '.join(map(str, choices))}", v)
-        if lo is not None and v < lo:
-            self.fail(key, f"an integer >= {lo}", v)
-        return v
-
-    def vec(self, key, n=3, default=None, positive=False):
-        if key not in self.t:
-            if default is None:
-                self.fail(key, f"a list of {n} numbers (missing)")
-            return tuple(default)
-        v = self.t[key]
-        if isinstance(v, (int, float)) and not isinstance(v, bool) and n == 3 and key in ("scale", "color", "albedo"):
-            v = [v] * 3
-        if (not isinstance(v, list) or len(v) != n or
-                any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) for x in v)):
-            self.fail(key, f"a list of {n} finite numbers", v)
-        if positive and any(x <= 0 for x in v):
-            self.fail(key, f"a list of {n} positive numbers", v)
-        return tuple(float(x) for x in v)
-
-
 def _norm(v):
     return math.sqrt(sum(x * x for x in v))
-
-
-def rotations(r: _Reader, table: dict) -> list:
-    """The ``rotate`` key of a shape: [ax, ay, az, degrees] or a list of them, axes non-zero."""
-    rot = table.get("rotate", [])
-    if rot and isinstance(rot[0], (int, float)):
-        rot = [rot]
-    if not isinstance(rot, list) or any(not isinstance(q, list) or len(q) != 4 or
-                                        any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in q)
-                                        for q in rot):
-        r.fail("rotate", "[ax, ay, az, degrees] or a list of them", table.get("rotate"))
-    if any(not any(q[:3]) for q in rot):
-        r.fail("rotate", "a non-zero rotation axis in every [ax, ay, az, degrees]", table.get("rotate"))
-    return rot
 
 
 def parse(data: dict, path: str = "<scene>") -> SceneSpec:
@@ -362,7 +293,6 @@ def parse(data: dict, path: str = "<scene>") -> SceneSpec:
         shapes.append(ShapeSpec(**kw))
     sdf = ()
     if "sdf" in data:
-        from ..sdf.spec import parse_sdf_tables
         sdf = parse_sdf_tables(data["sdf"], path, snames | names)
         meshy = [s.name for s in shapes if s.type in ("ply", "obj") or s.alpha_tested]
         if meshy:
@@ -379,7 +309,6 @@ def _alpha_texture(r: _Reader, base: Path) -> str:
     p = (base / fn).resolve()
     if not p.is_file():
         r.fail("alpha_texture", f"an existing image file, relative to the scene file (looked for {p})", fn)
-    from .textures import AlphaTextureError, read_alpha
     try:
         read_alpha(p)
     except AlphaTextureError as e:

@@ -116,8 +116,7 @@ def write_leaf_png(path, size: int = 128, edge: float = 0.03, color=(0.20, 0.45,
 
 
 def _main():  # pragma: no cover
-    from .spec import builtin_dir
-    p = builtin_dir() / "textures" / "leaf.png"
+    p = Path(__file__).resolve().parents[2] / "scenes" / "textures" / "leaf.png"  # spec.builtin_dir()
     a = write_leaf_png(p)
     print(f"wrote {p}: {a.shape[1]}x{a.shape[0]}, opaque fraction at cut-off 0.5: {np.mean(a >= 128):.3f}")
 

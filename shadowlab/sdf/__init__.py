@@ -1,27 +1,24 @@
-"""Signed distance fields: representation, scene twins, tracing, G-buffer (004_15e39f1e68ecd753.txt).
+"""Signed distance fields: a geometry library [Bálint 2019].
 
-* :mod:`.field` — SDF primitives, transforms, CSG, offset, Mandelbulb (004 §2.4–2.6);
-  :func:`sdf_of` gives a loaded scene's SDF (twins of its Mitsuba primitives + ``[[sdf]]`` objects).
-* :mod:`.spec` — the ``[[sdf]]`` tables of scene files (SDF-only objects).
-* :mod:`.trace` — sphere tracing, cone tracing, hard visibility (004 §2.7–2.9, §3.1).
-* :mod:`.gbuffer` — the cone-traced G-buffer of scenes with SDF-only content (004 §2.9).
-* :mod:`.reference` — the ground truth of such scenes (the Monte-Carlo cone reference, 004 §3.3.1),
-  :func:`reference_hook`.
-* ``soft``, ``shading``, ``bench`` — soft-shadow algorithms and techniques (004 §4–5).
+It imports nothing else of shadowlab (only numpy, Dr.Jit and Mitsuba; bad arguments raise
+ValueError / TypeError, which callers turn into shadowlab's errors):
+
+* :mod:`.field` — SDF primitives, transforms, CSG, offset, Mandelbulb [Bálint 2019, §2.4–2.6], and
+  the twins of Mitsuba's canonical primitives (:func:`~.field.twin_of`);
+* :mod:`.trace` — sphere tracing, cone tracing, hard visibility [Bálint 2019, §2.7–2.9, §3.1];
+* :mod:`.soft` — the cone maths (τ, τ⁻¹, cones between spheres), the single-ray soft-shadow
+  marches, the Quílez / Aaltonen baseline and the Monte-Carlo cone visibility [Bálint 2019, ch. 3–4].
+
+What needs a scene lives elsewhere: a scene's SDF and its ``[[sdf]]`` tables in
+:mod:`shadowlab.scene.twins` and :mod:`shadowlab.scene.sdf_spec`, the cone-traced G-buffer in
+:mod:`shadowlab.render.sdf_gbuffer`, the Monte-Carlo cone truth in
+:mod:`shadowlab.reference.sdf_truth`, the techniques in :mod:`shadowlab.techniques.sdf_shadows`.
 """
 
 from .field import (SDF, Box, Capsule, Cylinder, Difference, Intersection, Mandelbulb, Offset, Plane, Segment,
-                    Sphere, Transformed, Union, sdf_of, transform)
+                    Sphere, Transformed, Union, transform, twin_of)
 from .trace import cone_trace, hard_visibility, sphere_trace
 
-
-def reference_hook(frame, **kw):
-    """Ground truth of a scene with SDF-only content (``shadowlab reference`` calls this instead of
-    Mitsuba): :func:`shadowlab.sdf.reference.render_truth`."""
-    from .reference import render_truth
-    return render_truth(frame, **kw)
-
-
 __all__ = ["SDF", "Box", "Capsule", "Cylinder", "Difference", "Intersection", "Mandelbulb", "Offset", "Plane",
-           "Segment", "Sphere", "Transformed", "Union", "sdf_of", "transform",
-           "cone_trace", "hard_visibility", "sphere_trace", "reference_hook"]
+           "Segment", "Sphere", "Transformed", "Union", "transform", "twin_of",
+           "cone_trace", "hard_visibility", "sphere_trace"]

@@ -17,9 +17,9 @@ offsets of exact fields); CSG results are bounds only (004 §2.6, Theorem 1).
 * :class:`Mandelbulb`: the power-8 distance estimator (004 §6, Fig. 6.9; Quílez 2009), a
   symbolic loop with bailout.
 
-:func:`sdf_of` derives a scene's SDF from its Mitsuba primitives (rectangle, disk, cube, sphere,
-capped cylinder, with the very ``to_world`` matrices Mitsuba loads) plus the SDF-only content of
-its ``[[sdf]]`` tables, so one scene file gives the Mitsuba scene (ground truth) and its SDF.
+:func:`twin_of` is the SDF of one of Mitsuba's canonical primitives (rectangle, disk, cube,
+sphere, capped cylinder) under a ``to_world`` matrix; :mod:`shadowlab.scene.twins` applies it to
+a scene's shapes, so one scene file gives the Mitsuba scene (ground truth) and its SDF.
 
 Example (the backend must be initialised, ``shadowlab.backend.init()``):
 
@@ -522,7 +522,7 @@ def _mandelbulb_de(p, power, iterations, bailout):
 
 
 # ----------------------------------------------------------------------------------------------
-# SDF twins of scenes
+# SDF twins of Mitsuba's canonical primitives (the scene-level twins: shadowlab.scene.twins)
 
 def _columns(M):
     return M[:3, 0], M[:3, 1], M[:3, 2], M[:3, 3]
@@ -591,42 +591,3 @@ def twin_of(kind: str, to_world) -> SDF:
             return Cylinder(c, c + w, lu)
         return Transformed(Cylinder((0, 0, 0), (0, 0, 1), 1.0), M)
     raise ValueError(f"no SDF twin for Mitsuba shape type {kind!r}")
-
-
-def twin_of_shape(shape_spec) -> SDF | None:
-    """SDF twin of one ``[[shapes]]`` entry, built from the same Mitsuba dicts the scene loads
-    (:func:`shadowlab.scene.build.shape_dicts`), or None when it has none: meshes (ply / obj),
-    alpha-tested shapes (their holes are not a solid) and open cylinders (``caps = false``)."""
-    s = shape_spec
-    if s.type in ("ply", "obj") or s.alpha_tested or (s.type == "cylinder" and not s.caps):
-        return None
-    from ..scene.build import shape_dicts
-    d = shape_dicts(s)[s.name]
-    M = np.array(d["to_world"].matrix, dtype=np.float64)
-    return twin_of(d["type"], M).named(s.name, s.albedo)
-
-
-def sdf_of_spec(spec) -> SDF | None:
-    """The SDF of a scene spec: Mitsuba twins of its ``[[shapes]]`` and its ``[[sdf]]`` objects,
-    united; None if some shape has no twin (meshes, alpha-tested or open shapes)."""
-    from .spec import build_objects
-    parts = []
-    for s in spec.shapes:
-        t = twin_of_shape(s)
-        if t is None:
-            return None
-        parts.append(t)
-    parts += build_objects(getattr(spec, "sdf", ()))
-    if not parts:
-        return None
-    return Union(*parts)
-
-
-def sdf_of(scene) -> SDF | None:
-    """SDF of a loaded Scene (:mod:`shadowlab.scene.build`), None if it has meshes or no SDF.
-    Built once per Scene and kept on it."""
-    cached = scene.__dict__.get("_sdf", False)
-    if cached is False:
-        cached = sdf_of_spec(scene.spec)
-        scene.__dict__["_sdf"] = cached
-    return cached

@@ -1,4 +1,4 @@
-"""Single-ray soft shadows of signed distance fields (004_15e39f1e68ecd753.txt ch. 3–4).
+"""Single-ray soft shadows of signed distance fields [Bálint 2019, ch. 3–4].
 
 The light is a sphere (centre ``c``, radius ``R``), the shading point carries the *surface
 sphere* of 004 §2.9 (centre ``p``, radius ``R0``), and the shadow is the fraction of the light
@@ -137,37 +137,6 @@ def tau_inv(m, iterations: int = TAU_INV_ITERATIONS):
         lo = sel(below, mid, lo)
         hi = sel(below, hi, mid)
     return sel(m <= 0.0, -1.0, sel(m >= 1.0, 1.0, 0.5 * (lo + hi)))
-
-
-# ----------------------------------------------------------------------------------------------
-# lights as spheres
-
-def light_sphere(scene, light, fit: str = "equal_area") -> tuple:
-    """(centre (3,), radius) of the sphere that stands for ``light`` (a LightSpec).
-
-    | light kind | centre | radius, ``fit="equal_area"`` | radius, ``fit="bounding"`` |
-    |---|---|---|---|
-    | sphere, point (r) | position | r | r |
-    | disk, spot (r) | position | r (the disk seen face-on) | r |
-    | rect w × h | position | √(w·h/π) (the disk of equal area) | ½√(w² + h²) (004 §5.4) |
-    | directional (θ) | scene centre − D·direction | D·tan(θ/2) | D·tan(θ/2) |
-
-    with D = ``SUN_DISTANCE`` scene radii, where the ground truth puts the sun's disk. Delta
-    lights (radius 0, θ = 0) give radius 0."""
-    from ..scene.lights import SUN_DISTANCE, forward
-    if fit not in ("equal_area", "bounding"):
-        raise ValueError(f"fit must be equal_area or bounding, not {fit!r}")
-    k = light.kind
-    if k == "directional":
-        D = SUN_DISTANCE * float(scene.radius)
-        d = np.asarray(forward(light), dtype=np.float64)
-        c = np.asarray(scene.center, dtype=np.float64) - D * d
-        return c, D * math.tan(math.radians(light.angular_diameter) / 2)
-    c = np.asarray(light.position, dtype=np.float64)
-    if k == "rect":
-        w, h = light.size
-        return c, (math.sqrt(w * h / math.pi) if fit == "equal_area" else 0.5 * math.hypot(w, h))
-    return c, float(light.radius)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -555,9 +524,19 @@ def _halton_arrays(n: int):
     return _HALTON[key]
 
 
+def fnv32(*vals) -> int:
+    """FNV-1a over the 8 little-endian bytes of each value: the seed hash of every Monte-Carlo
+    stream in shadowlab (the same function as ``shadowlab.render.shading._hash32``, written here
+    because this package imports nothing of shadowlab; a test checks they agree)."""
+    h = 2166136261
+    for v in vals:
+        for b in int(v).to_bytes(8, "little", signed=False):
+            h = ((h ^ b) * 16777619) & 0xFFFFFFFF
+    return h
+
+
 def _hash_u32(seed: int) -> int:
-    from ..render.shading import _hash32
-    return _hash32(0x5DF, seed)
+    return fnv32(0x5DF, seed)
 
 
 def _disk_ray(j, h2, h3, off1, off2, nmax, o, v, e1, e2, c, dc, R, rho_d, nrm, sqrt_scheme, solid):
@@ -641,11 +620,11 @@ def start_points(sdf, points, normals, clearance: float):
 def mc_cone_visibility(sdf, points, normals, light, n: int = 256, *, scheme: str = "sqrt",
                        measure: str = "solid_angle", cosine: bool | str = False, seed: int = 0, eps: float = 1e-4,
                        i_max: int = 512, clearance: float | None = None, radius: float | None = None,
-                       scene=None, return_iterations: bool = False):
+                       return_iterations: bool = False):
     """Monte-Carlo visibility of a spherical light inside the cone from each point (004 §3.3.1).
 
-    ``light``: a LightSpec (its sphere by :func:`light_sphere`; ``scene`` is needed only for a
-    directional light) or a ``(centre, radius)`` pair; ``radius`` overrides the radius.
+    ``light``: the light's sphere, a ``(centre, radius)`` pair (a scene light's sphere:
+    :func:`shadowlab.scene.lights.light_sphere`); ``radius`` overrides the radius.
     ``n`` Halton samples per point (``scheme``: ``"sqrt"`` r = √u, or ``"r_weighted"`` r = u
     weighted by r), each one sphere-traced shadow ray from the point moved ``clearance`` off
     the surface along its normal (default 10·eps) to the light sphere; a ray still marching
@@ -662,13 +641,9 @@ def mc_cone_visibility(sdf, points, normals, light, n: int = 256, *, scheme: str
     n = int(n)
     if n < 1:
         raise ValueError("n must be at least 1")
-    if isinstance(light, tuple):
-        center, R = np.asarray(light[0], dtype=np.float64), float(light[1])
-    else:
-        if light.kind == "directional" and scene is None:
-            raise ValueError("mc_cone_visibility: a directional light needs scene= (its sphere sits at the scene's "
-                             "sun distance)")
-        center, R = light_sphere(scene, light)
+    if not (isinstance(light, (tuple, list)) and len(light) == 2):
+        raise TypeError(f"light must be a (centre, radius) pair, not {light!r}")
+    center, R = np.asarray(light[0], dtype=np.float64), float(light[1])
     if radius is not None:
         R = radius
     o = start_points(sdf, points, normals, 10 * eps if clearance is None else clearance)

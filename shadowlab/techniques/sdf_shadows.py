@@ -1,6 +1,6 @@
 """Soft shadows of signed distance fields: single-ray cone marching and its references
 (004_15e39f1e68ecd753.txt ch. 3–5; algorithms in :mod:`shadowlab.sdf.soft`, chapter 5 in
-:mod:`shadowlab.sdf.shading`).
+:mod:`shadowlab.techniques._sdf_shading`).
 
 | technique | what it is | source |
 |---|---|---|
@@ -23,10 +23,10 @@ point p on the surface gets the surface sphere of 004 §2.9, radius ``R0 = surfa
 the width of one pixel at p's distance from the camera (``|p − camera|·2·tan(fov/2)/(W·s)``),
 and the march starts from its centre ``p + R0·n`` (n the geometric normal facing the camera).
 With the cone-traced G-buffer of ``[[sdf]]`` scenes the point already is the centre of its
-surface sphere (radius ``f(p)``, :mod:`shadowlab.sdf.gbuffer`); ``surface_radius`` is then unused.
+surface sphere (radius ``f(p)``, :mod:`shadowlab.render.sdf_gbuffer`); ``surface_radius`` is then unused.
 
 **Light size mapping.** The single-ray techniques, ``sdf_quilez`` and ``sdf_mc`` model every light
-as a sphere (centre, radius R) by :func:`shadowlab.sdf.soft.light_sphere` (``fit="equal_area"``):
+as a sphere (centre, radius R) by :func:`shadowlab.scene.lights.light_sphere` (``fit="equal_area"``):
 sphere / point lights exactly, disks and spots by their radius, a w × h rectangle by the disk of
 equal area (R = √(w·h/π)), a directional light by the sun disk the ground truth renders; the
 radius used is ``light_scale`` × R (``light_scale`` 1 = the scene's light; fitting moves it; 0 =
@@ -55,9 +55,10 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import InputError
-from ..sdf import shading as sdf_shading
+from ..scene.lights import light_sphere
 from ..sdf import soft
 from ..sdf.trace import hard_visibility
+from . import _sdf_shading as sdf_shading
 from .base import Param, ShadowResult, Technique, param_table_markdown, register
 
 SOURCE = "004_15e39f1e68ecd753.txt"
@@ -139,7 +140,7 @@ class SDFTechnique(Technique):
 
     def light_radius(self, frame, light, values):
         """(centre, radius as a Dr.Jit Float of width 1, its value) of the light's sphere."""
-        center, R = soft.light_sphere(frame.scene, light)
+        center, R = light_sphere(frame.scene, light)
         s = values.get("light_scale", 1.0)
         if isinstance(s, dr.ArrayBase):
             return center, s * R, float(dr.detach(s)[0]) * R
@@ -186,7 +187,7 @@ class SDFHard(SDFTechnique):
     params = (I_MAX, HIT_EPS, SURFACE_RADIUS)
 
     def light_visibility(self, frame, sdf, light, o, R0, values):
-        center, _ = soft.light_sphere(frame.scene, light)
+        center, _ = light_sphere(frame.scene, light)
         v, its = hard_visibility(sdf, o, None, center, eps=values["hit_eps"], i_max=values["i_max"],
                                  return_iterations=True)
         return v, {"iterations": mi.Float(its)}, 0.0
@@ -222,7 +223,7 @@ class SDFAAHard(SingleRay):
               EPSILON, DIRECTION, I_MAX, AA_SURFACE_RADIUS)
 
     def radius_for(self, frame, light, values):
-        center, _ = soft.light_sphere(frame.scene, light)
+        center, _ = light_sphere(frame.scene, light)
         return center, dr.opaque(mi.Float, 0.0), 0.0
 
 
@@ -337,7 +338,7 @@ class SDFEdgeMC(SDFTechnique):
                                          samples=int(values["samples"]), seed=int(values["seed"]),
                                          eps=values["epsilon"], direction=values["direction"],
                                          i_max=values["i_max"], hit_eps=values["hit_eps"])
-        _, R = soft.light_sphere(frame.scene, light, fit="bounding")
+        _, R = light_sphere(frame.scene, light, fit="bounding")
         return v, aovs, R
 
 

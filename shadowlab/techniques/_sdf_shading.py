@@ -22,7 +22,7 @@ differs from the truth only in how ``v`` is decided. Three estimators (:func:`vi
 * ``"traced"`` — Eq. 5.1 in full (004 Fig. 6.16e): each sample's shadow ray is sphere-traced.
 
 Any light with a bounding sphere works (004 §5.4): sphere, disk and rectangle lights are
-sampled by Mitsuba's emitters; the single-ray pass uses :func:`~shadowlab.sdf.soft.light_sphere`
+sampled by Mitsuba's emitters; the single-ray pass uses :func:`~shadowlab.scene.lights.light_sphere`
 with ``fit="bounding"``. Sample i of point k uses stratum (i mod s, i div s) of an s×s grid,
 jittered by TEA hashes of (k, i, seed): stateless, so a sample can be drawn inside the flat
 trace loop of ``traced`` exactly when the previous ray finished.
@@ -32,7 +32,9 @@ from __future__ import annotations
 
 import drjit as dr
 
-from . import soft
+from ..render.shading import _hash32
+from ..scene.lights import light_sphere
+from ..sdf import soft
 
 ESTIMATORS = ("edge", "traced", "separable")
 
@@ -118,7 +120,6 @@ def visibility(frame, light, sdf, o, R0, *, estimator: str = "edge", samples: in
     surface-sphere radius; ``samples``: s of the s×s light samples. Returns (mi.Float, dict of
     per-point Dr.Jit AOVs)."""
     import mitsuba as mi
-    from ..render.shading import _hash32
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator must be one of {ESTIMATORS}, not {estimator!r}")
     gb = frame.gbuffer
@@ -135,7 +136,7 @@ def visibility(frame, light, sdf, o, R0, *, estimator: str = "edge", samples: in
                               dr.opaque(mi.UInt32, int(i_max)))
         aovs["iterations"] = mi.Float(its)
         return v, aovs
-    center, R = soft.light_sphere(frame.scene, light, fit="bounding")
+    center, R = light_sphere(frame.scene, light, fit="bounding")
     cone = soft.make_cone(o, R0, center, dr.opaque(mi.Float, R), direction, bbox=soft.bounds(sdf))
     m = soft.march(sdf, cone, "linear", eps=eps, i_max=i_max)
     aovs.update(r_min=m.r_min, iterations=mi.Float(m.iterations))

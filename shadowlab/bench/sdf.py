@@ -22,15 +22,28 @@ Measured in one run (never asserted in tests), written to ``OUT/sdf.json`` and `
 
 from __future__ import annotations
 
-import math
-import time
+import datetime
 from dataclasses import replace
 from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
+from .. import backend
+from ..errors import ReferenceError_
 from ..io.jsonio import write_json_atomic
 from ..io.png import write_bytes_atomic
+from ..reference import sdf_truth, store
+from ..reference.truth import render_truth
+from ..render.frame import make_frame
+from ..scene import build, load
+from ..scene.lights import light_sphere
+from ..scene.spec import load_spec, resolve
+from ..sdf import soft
+from ..techniques import get
+from ..techniques.sdf_shadows import SURFACE_RADIUS, surface_points
+from .timing import warm_median
 
 VARIANTS = ("base", "linear", "discrete", "convex")
 DIRECTIONS = ("A", "B")
@@ -49,11 +62,6 @@ def _truth(name, res, light_radius=None):
     """(frame, truth V image, penumbra mask) of ``name`` at res²: the stored reference when it
     matches (and no radius is overridden), else a fresh one (Mitsuba; the MC cone reference for
     SDF-only scenes), not stored."""
-    from ..errors import ReferenceError_
-    from ..reference import store
-    from ..render.frame import make_frame
-    from ..scene import build
-    from ..scene.spec import load_spec, resolve
     spec = load_spec(resolve(name)).with_resolution(res, res)
     if light_radius is not None:
         spec = replace(spec, lights=tuple(replace(l, radius=float(light_radius)) for l in spec.lights))
@@ -66,11 +74,9 @@ def _truth(name, res, light_radius=None):
         except ReferenceError_:
             truth = None
     if truth is None:
-        if sc.spec.sdf:
-            from .reference import render_truth as sdf_truth
-            truth = sdf_truth(frame)
+        if sc.kind == "sdf":
+            truth = sdf_truth.render_truth(frame)
         else:
-            from ..reference.truth import render_truth
             truth = render_truth(frame, spp=0)
     L = sc.spec.lights[0].name
     V = truth.lights[L].V
@@ -80,13 +86,9 @@ def _truth(name, res, light_radius=None):
 
 def _pass(frame, variant, direction, eps, i_max=I_MAX, scale=1.0):
     """The shadow pass of one configuration; returns (visibility image, SDF evaluations, stopped)."""
-    import drjit as dr
-    import mitsuba as mi
-    from ..techniques.sdf_shadows import SURFACE_RADIUS, surface_points
-    from . import soft
     light = frame.lights[0]
     o, R0 = surface_points(frame, SURFACE_RADIUS.default)
-    c, R = soft.light_sphere(frame.scene, light)
+    c, R = light_sphere(frame.scene, light)
     cone = soft.make_cone(o, R0, c, dr.opaque(mi.Float, R * scale), direction, bbox=soft.bounds(frame.sdf))
     m = soft.march(frame.sdf, cone, variant, eps=eps, i_max=i_max)
     dr.eval(m.visibility, m.iterations)
@@ -95,10 +97,7 @@ def _pass(frame, variant, direction, eps, i_max=I_MAX, scale=1.0):
 
 def _timed(fn, repeats):
     """Median warm time of ``fn`` (one untimed call compiles)."""
-    from ..bench import timed
-    fn()
-    out, ts = timed(fn, repeats)
-    return out, float(np.median(ts))
+    return warm_median(fn, repeats, warmup=1)
 
 
 def _stats(frame, m, V, mask, pen):
@@ -111,9 +110,6 @@ def _stats(frame, m, V, mask, pen):
 
 
 def bench_variants(res=256, err_res=128, repeats=5, scenes=SCENES, epsilons=EPSILONS):
-    from ..render.frame import make_frame
-    from ..scene import load
-    from ..techniques import get
     out = {}
     for name in scenes:
         fr_t = make_frame(load(name, resolution=(res, res)))
@@ -142,7 +138,6 @@ def bench_variants(res=256, err_res=128, repeats=5, scenes=SCENES, epsilons=EPSI
 
 
 def _eval(r):
-    import drjit as dr
     dr.eval(*r.visibility.values())
     return r
 
@@ -214,8 +209,6 @@ def _markdown(res: dict) -> str:
 
 def run(out: Path, quick: bool = False) -> Path:
     """Run the SDF benchmarks; write ``out/sdf.json`` and ``out/sdf.md``; return the .md path."""
-    import datetime
-    from .. import backend
     backend.init()
     res = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": backend.machine_info(),
            "quick": quick, "i_max": I_MAX}

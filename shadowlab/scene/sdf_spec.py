@@ -1,9 +1,10 @@
-"""The ``[[sdf]]`` tables of a scene file: SDF-only objects (004_15e39f1e68ecd753.txt §2.4–2.6, §6).
+"""The ``[[sdf]]`` tables of a scene file: SDF-only objects [Bálint 2019, §2.4–2.6, §6].
 
 Objects that have no Mitsuba twin (a Mandelbulb, CSG solids, capsules, planes) are declared in
 the scene TOML under ``[[sdf]]``; they join the SDF twins of the ``[[shapes]]``
-(:func:`shadowlab.sdf.field.sdf_of`). Mitsuba does not see them, so such a scene's G-buffer is
-cone traced and its ground truth is the Monte-Carlo cone reference, not Mitsuba.
+(:func:`shadowlab.scene.twins.sdf_of`). Mitsuba does not see them, so such a scene's G-buffer is
+cone traced and its ground truth is the Monte-Carlo cone reference, not Mitsuba: its
+:attr:`~shadowlab.scene.spec.SceneSpec.kind` is ``"sdf"``.
 
 ```toml
 [[sdf]]
@@ -34,7 +35,11 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
+
 from ..errors import SceneError
+from ..sdf import field as F
+from ._reader import _Reader, rotations
 
 PRIMITIVES = ("sphere", "box", "cylinder", "capsule", "segment", "plane", "mandelbulb")
 OPERATIONS = ("union", "intersection", "difference")
@@ -56,7 +61,6 @@ _KEYS = {
 
 
 def _object(path: str, where: str, st, top: bool, depth: int = 0) -> dict:
-    from ..scene.spec import _Reader, rotations
     if not isinstance(st, dict):
         raise SceneError(f"{path}: {where}: expected a table, got {st!r}")
     r = _Reader(path, where, st)
@@ -131,7 +135,6 @@ def parse_sdf_tables(raw, path: str, taken: set) -> tuple:
 
 
 def _build(d: dict):
-    from . import field as F
     t = d["type"]
     if t == "sphere":
         obj = F.Sphere(d["center"], d["radius"])
@@ -164,7 +167,6 @@ def build_objects(tables) -> list:
 def bounds(tables):
     """World bounding box (lo, hi) of the bounded ``[[sdf]]`` objects, or None if there is none
     (planes are unbounded and left out)."""
-    import numpy as np
     objs = [o for o in build_objects(tables) if o.bounded]
     if not objs:
         return None

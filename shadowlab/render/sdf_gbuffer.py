@@ -1,4 +1,4 @@
-"""The cone-traced G-buffer of an SDF scene (004_15e39f1e68ecd753.txt §2.9) and its unshadowed light.
+"""The cone-traced G-buffer of an SDF scene [Bálint 2019, §2.9] and its unshadowed light.
 
 Camera rays are the same as the Mitsuba G-buffer's (``sensor.sample_ray`` at pixel (sub-)centres,
 :func:`shadowlab.render.gbuffer.pixel_uv` order), each traced as the *pixel-covering cone* of
@@ -30,7 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..render.gbuffer import GBuffer, pixel_uv, vec_numpy
+from ..sdf.trace import cone_trace, sphere_trace
+from .gbuffer import GBuffer, pixel_uv, vec_numpy
+from .shading import _hash32
 
 
 @dataclass
@@ -58,7 +60,6 @@ def cone_gbuffer(scene, sdf, ss: int = 1, *, eps: float = 1e-4, i_max: int = 512
     """Cone-traced G-buffer of ``sdf`` seen by ``scene``'s camera (see the module docstring)."""
     import drjit as dr
     import mitsuba as mi
-    from .trace import cone_trace, sphere_trace
 
     W, H = scene.resolution
     uv = pixel_uv(W, H, ss)
@@ -122,7 +123,6 @@ def unshadowed(scene, gb: SDFGBuffer, light_name: str, k: int = 16, seed: int = 
     the surface points belong to no Mitsuba shape."""
     import drjit as dr
     import mitsuba as mi
-    from ..render.shading import _hash32
     spec = scene.spec.light(light_name)
     k = 1 if spec.is_delta else int(k)
     n = gb.size

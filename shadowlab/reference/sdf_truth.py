@@ -1,10 +1,10 @@
-"""Ground truth of scenes with SDF-only content (004_15e39f1e68ecd753.txt §3.3.1).
+"""Ground truth of ``"sdf"`` scenes, those with SDF-only content [Bálint 2019, §3.3.1].
 
 Mitsuba does not see ``[[sdf]]`` objects (a Mandelbulb has no mesh or Mitsuba primitive), so
 ``shadowlab reference`` cannot ask Mitsuba for their truth. The reference of such a scene is the
 thesis' own: the Monte-Carlo integral over the light's disk inside the cone from each surface
 point to the spherical light (004 §3.3.1), ``shadowlab.sdf.soft.mc_cone_visibility(sdf, points,
-normals, light, n)``, evaluated at the points of the cone-traced G-buffer. Its meta.json says so
+normals, light_sphere(scene, light), n)``, evaluated at the points of the cone-traced G-buffer. Its meta.json says so
 (``truth``: ``"sdf_mc_cone"``, ``not_mitsuba_truth``), and the ``mitsuba.*`` channels are absent.
 
 What is stored per light, as for a Mitsuba truth: ``V`` = ∫ v·cos / ∫ cos over the light
@@ -18,9 +18,14 @@ from __future__ import annotations
 
 import time
 
+import drjit as dr
 import numpy as np
 
 from ..errors import InputError
+from ..render.gbuffer import vec_numpy
+from ..scene.lights import light_sphere
+from ..sdf.soft import mc_cone_visibility
+from .truth import LightTruth, Truth
 
 TRUTH_KIND = "sdf_mc_cone"
 NOTE = ("scene has SDF-only objects ([[sdf]]) that Mitsuba does not see: this truth is the Monte-Carlo cone "
@@ -30,10 +35,6 @@ NOTE = ("scene has SDF-only objects ([[sdf]]) that Mitsuba does not see: this tr
 
 def render_truth(frame, *, samples: int = 1024, seed: int = 0, progress=None):
     """The :class:`shadowlab.reference.truth.Truth` of an SDF-only scene (module docstring)."""
-    import drjit as dr
-    from ..reference.truth import LightTruth, Truth
-    from ..render.gbuffer import vec_numpy
-    from .soft import mc_cone_visibility
     scene, gb = frame.scene, frame.gbuffer
     bad = [f"{l.name} ({l.kind})" for l in frame.lights if l.kind != "sphere"]
     if bad:
@@ -57,7 +58,7 @@ def render_truth(frame, *, samples: int = 1024, seed: int = 0, progress=None):
 
     for l in frame.lights:
         # A (solid-angle fraction) and V (cosine-weighted) from the same n rays per point
-        A, V = mc_cone_visibility(frame.sdf, gb.p, gb.n, l, n, seed=seed, cosine="both")
+        A, V = mc_cone_visibility(frame.sdf, gb.p, gb.n, light_sphere(scene, l), n, seed=seed, cosine="both")
         dr.eval(A, V)
         (A, A_se), (V, V_se) = image(A), image(V)
         lt = LightTruth(V=V, V_se=V_se, A=A, A_se=A_se, samples=img(np.where(valid, float(n), 0.0)) * s2,

@@ -20,31 +20,28 @@ Measured (never asserted in tests):
 
 from __future__ import annotations
 
-import time
+import datetime
 from pathlib import Path
 
+import drjit as dr
 import numpy as np
 
-from . import backend
-from .io.jsonio import write_json_atomic
-
-
-def timed(fn, repeats=1):
-    """Run ``fn`` ``repeats`` times between ``dr.sync_thread()`` calls; (last result, seconds each)."""
-    import drjit as dr
-    ts = []
-    out = None
-    for _ in range(repeats):
-        dr.sync_thread()
-        t0 = time.perf_counter()
-        out = fn()
-        dr.sync_thread()
-        ts.append(time.perf_counter() - t0)
-    return out, ts
+from .. import backend
+from ..errors import InputError
+from ..fit.goals import markdown as fit_markdown
+from ..fit.goals import measure as bench_fit
+from ..io.jsonio import write_json_atomic
+from ..pipeline import load_scene
+from ..reference.truth import visibility
+from ..render.frame import make_frame
+from ..render.shading import sample_light
+from ..scene import load
+from ..techniques import base
+from .sdf import run as sdf_bench
+from .timing import timed
 
 
 def _kernels():
-    import drjit as dr
     h = [k for k in dr.kernel_history() if k.get("type") == dr.KernelType.JIT]  # not memsets/copies
     compiled = [k for k in h if not k.get("cache_hit") and not k.get("cache_disk")]
     return {"kernels": len(h), "compiled": len(compiled),
@@ -57,11 +54,6 @@ def _kernels():
 
 def bench_truth(scene="contact", res=512, target_se=0.005, uniform_res=128, uniform_rounds=16):
     """Adaptive truth at res² and the measured cost of uniform sampling at the same worst error."""
-    import drjit as dr
-    from .reference.truth import visibility
-    from .render.frame import make_frame
-    from .render.shading import sample_light
-    from .scene import load
 
     light = load(scene).spec.lights[0].name
     # warm up the kernels on a small frame, so the timing below is the sampler, not the compiler
@@ -80,15 +72,17 @@ def bench_truth(scene="contact", res=512, target_se=0.005, uniform_res=128, unif
     scu = load(scene, resolution=(uniform_res, uniform_res))
     fu = make_frame(scu)
     k = 16
-    s1 = s2 = 0.0
-    t0 = time.perf_counter()
-    for r in range(uniform_rounds):
-        _, fv, fs, _ = sample_light(scu, fu.gbuffer.si, scu.emitters[light], k, 1, r, True, stratified=False)
-        fv, fs = fv.numpy(), fs.numpy()
-        Vr = np.where(fs > 0, fv / np.where(fs > 0, fs, 1), 1.0).astype(np.float64)
-        s1, s2 = s1 + Vr, s2 + Vr * Vr
-    dr.sync_thread()
-    tu = time.perf_counter() - t0
+
+    def sample_rounds():
+        s1 = s2 = 0.0
+        for r in range(uniform_rounds):
+            _, fv, fs, _ = sample_light(scu, fu.gbuffer.si, scu.emitters[light], k, 1, r, True, stratified=False)
+            fv, fs = fv.numpy(), fs.numpy()
+            Vr = np.where(fs > 0, fv / np.where(fs > 0, fs, 1), 1.0).astype(np.float64)
+            s1, s2 = s1 + Vr, s2 + Vr * Vr
+        return s1, s2
+
+    (s1, s2), (tu,) = timed(sample_rounds)
     R = uniform_rounds
     var_rounds = np.maximum(s2 / R - (s1 / R) ** 2, 0) * R / (R - 1)
     valid = fu.gbuffer.valid.numpy()
@@ -105,10 +99,6 @@ def bench_truth(scene="contact", res=512, target_se=0.005, uniform_res=128, unif
 
 
 def bench_techniques(scene="contact", res=256, repeats=5):
-    import drjit as dr
-    from .pipeline import load_scene
-    from .render.frame import make_frame
-    from .techniques import base
     sc = load_scene(scene, (res, res))
     frame = make_frame(sc)
     out = {}
@@ -136,7 +126,6 @@ FILTERED = ("pcf", "vsm", "esm", "evsm")
 
 
 def _render_once(t, frame, p):
-    import drjit as dr
     res = t.render(frame, p)
     dr.eval(*res.visibility.values())
     return res
@@ -144,7 +133,6 @@ def _render_once(t, frame, p):
 
 def _warm_time(t, frame, p, repeats):
     """(first run incl. compile, median warm run) of technique ``t`` with params ``p``."""
-    import drjit as dr
     for l in frame.lights:  # shared input, not the technique's cost
         frame.light_view(l.name, res=p.get("resolution") or None, bits=p.get("depth_bits") or None,
                          backface=bool(p.get("backface", False)))
@@ -157,9 +145,6 @@ def bench_filters(scene="contact", res=256, kernels=(1, 3, 5, 7), map_sizes=(512
     """Cost vs kernel size and vs shadow-map size for PCF and the prefiltered maps (003 ch. 3
     tables): PCF should grow with the kernel's area, prefiltered ones stay nearly flat;
     prefiltered ones grow with the map size (they filter every texel), PCF not."""
-    from .pipeline import load_scene
-    from .render.frame import make_frame
-    from .techniques import base
     sc = load_scene(scene, (res, res))
     frame = make_frame(sc)
     names = [n for n in FILTERED if n in base.names()]
@@ -183,10 +168,6 @@ def bench_filters(scene="contact", res=256, kernels=(1, 3, 5, 7), map_sizes=(512
 def bench_sweep(scene="contact", res=128, values=50):
     """A sweep of ``values`` values of one continuous parameter per technique: with opaque
     parameters only the first value may compile; report the kernel-cache hits."""
-    import drjit as dr
-    from .pipeline import load_scene
-    from .render.frame import make_frame
-    from .techniques import base
     sc = load_scene(scene, (res, res))
     frame = make_frame(sc)
     out = {}
@@ -268,7 +249,6 @@ def _markdown(res: dict) -> str:
             lines.append(f"| {n} | `{d['param']}` | {d['values']} | [{d['range'][0]:.4g}, {d['range'][1]:.4g}] | "
                          f"{d['kernels_launched']} | {d['kernels_compiled_after_first']} | {d['cache_hits']} |")
     if res.get("fit"):
-        from .fit.goals import markdown as fit_markdown
         lines += fit_markdown(res["fit"])
     if res.get("sdf"):
         lines += ["", f"SDF soft shadows (004 ch. 6): see `{Path(res['sdf']).name}` (`shadowlab bench --only sdf`)."]
@@ -277,12 +257,9 @@ def _markdown(res: dict) -> str:
 
 def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
     """Run every benchmark; write ``out/bench.json`` and ``out/bench.md``; return the .md path.
-    ``only="sdf"``: just the SDF soft-shadow bench (:mod:`shadowlab.sdf.bench`: ``out/sdf.json``,
+    ``only="sdf"``: just the SDF soft-shadow bench (:mod:`shadowlab.bench.sdf`: ``out/sdf.json``,
     ``out/sdf.md``), which the full run also writes."""
-    import datetime
-    from .sdf.bench import run as sdf_bench
     if only is not None and only != "sdf":
-        from .errors import InputError
         raise InputError(f"--only {only!r}: expected sdf (or no --only for every benchmark)")
     if only == "sdf":
         return sdf_bench(Path(out), quick=quick)
@@ -294,7 +271,6 @@ def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
     res["filters"] = bench_filters(res=128 if quick else 256, map_sizes=(256, 512) if quick else (512, 1024, 2048),
                                    kernels=(1, 3) if quick else (1, 3, 5, 7), repeats=2 if quick else 5)
     res["sweep"] = bench_sweep(values=5 if quick else 50)
-    from .fit.goals import measure as bench_fit
     res["fit"] = bench_fit(quick)  # pcss.light_size: Adam vs grid search (the fitting goals)
     res["sdf"] = str(sdf_bench(Path(out), quick=quick))  # 004 ch. 6: written to sdf.json / sdf.md
     out = Path(out)

@@ -1,0 +1,35 @@
+"""The one timing helper of every benchmark.
+
+Dr.Jit evaluates lazily and launches kernels asynchronously, so a clock read without a
+``dr.sync_thread()`` before it times the tracing, not the work: :func:`timed` synchronises before
+starting the clock and before reading it, for every run. ``warmup`` untimed runs first compile
+the kernels (a warm run then measures the kernels alone, loaded from Dr.Jit's cache).
+"""
+
+from __future__ import annotations
+
+import time
+
+import drjit as dr
+import numpy as np
+
+
+def timed(fn, repeats: int = 1, warmup: int = 0):
+    """Run ``fn`` ``warmup`` times untimed, then ``repeats`` times, each between ``dr.sync_thread()``
+    calls; returns (the last result, list of seconds of each timed run)."""
+    for _ in range(int(warmup)):
+        fn()
+    ts, out = [], None
+    for _ in range(int(repeats)):
+        dr.sync_thread()
+        t0 = time.perf_counter()
+        out = fn()
+        dr.sync_thread()
+        ts.append(time.perf_counter() - t0)
+    return out, ts
+
+
+def warm_median(fn, repeats: int = 5, warmup: int = 1):
+    """(last result, median seconds) of ``repeats`` warm runs of ``fn`` after ``warmup`` untimed ones."""
+    out, ts = timed(fn, repeats, warmup=warmup)
+    return out, float(np.median(ts))

@@ -1,0 +1,54 @@
+"""A scene's signed distance field: the SDF twins of its ``[[shapes]]`` plus its ``[[sdf]]`` objects.
+
+Every Mitsuba primitive of a scene file (rectangle, disk, cube, sphere, capped cylinder) has a
+twin in :mod:`shadowlab.sdf.field` (:func:`~shadowlab.sdf.field.twin_of`), built from the very
+``to_world`` matrices Mitsuba loads (:func:`shadowlab.scene.build.shape_dicts`); the SDF-only
+objects of the ``[[sdf]]`` tables (:mod:`shadowlab.scene.sdf_spec`) join them. So one scene file
+gives the Mitsuba scene (the ground truth of a ``"mitsuba"`` scene) and its SDF
+[Bálint 2019, §2.4–2.6].
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..sdf.field import SDF, Union, twin_of
+from .build import shape_dicts
+from .sdf_spec import build_objects
+
+
+def twin_of_shape(shape_spec) -> SDF | None:
+    """SDF twin of one ``[[shapes]]`` entry, built from the same Mitsuba dicts the scene loads
+    (:func:`shadowlab.scene.build.shape_dicts`), or None when it has none: meshes (ply / obj),
+    alpha-tested shapes (their holes are not a solid) and open cylinders (``caps = false``)."""
+    s = shape_spec
+    if s.type in ("ply", "obj") or s.alpha_tested or (s.type == "cylinder" and not s.caps):
+        return None
+    d = shape_dicts(s)[s.name]
+    M = np.array(d["to_world"].matrix, dtype=np.float64)
+    return twin_of(d["type"], M).named(s.name, s.albedo)
+
+
+def sdf_of_spec(spec) -> SDF | None:
+    """The SDF of a scene spec: Mitsuba twins of its ``[[shapes]]`` and its ``[[sdf]]`` objects,
+    united; None if some shape has no twin (meshes, alpha-tested or open shapes)."""
+    parts = []
+    for s in spec.shapes:
+        t = twin_of_shape(s)
+        if t is None:
+            return None
+        parts.append(t)
+    parts += build_objects(getattr(spec, "sdf", ()))
+    if not parts:
+        return None
+    return Union(*parts)
+
+
+def sdf_of(scene) -> SDF | None:
+    """SDF of a loaded Scene (:mod:`shadowlab.scene.build`), None if it has meshes or no SDF.
+    Built once per Scene and kept on it."""
+    cached = scene.__dict__.get("_sdf", False)
+    if cached is False:
+        cached = sdf_of_spec(scene.spec)
+        scene.__dict__["_sdf"] = cached
+    return cached
