@@ -1,4 +1,4 @@
-"""Variant choice, libLLVM check, thread count and seeds (DESIGN.md, "backend.py").
+"""Variant choice, libLLVM check, thread count and seeds (docs/ARCHITECTURE.md, "backend.py").
 
 Mitsuba 3.9 kernels abort inside libLLVM 14/15 ("LLVM ERROR: Cannot select ... fminimum"),
 which would kill the Python process. So before the first kernel runs in this process we

@@ -1,5 +1,5 @@
 """The ``shadowlab`` command line (typer). Exit codes: 0 ok, 1 gate failed, 2 bad input or
-usage, 3 environment (DESIGN.md, Conventions)."""
+usage, 3 environment (docs/ARCHITECTURE.md, Conventions)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """One error family for shadowlab; each error carries the CLI exit code it maps to.
 
-Exit codes (DESIGN.md, Conventions): 0 ok, 1 a gate failed, 2 bad input or usage,
+Exit codes (docs/ARCHITECTURE.md, Conventions): 0 ok, 1 a gate failed, 2 bad input or usage,
 3 environment (no usable libLLVM, missing package).
 """
 

@@ -10,7 +10,7 @@ Measured (never asserted in tests):
 * per technique: compile time (Dr.Jit codegen + LLVM backend time of kernels not found in
   the cache, from ``dr.kernel_history``) and warm run time (median of repeats, after
   ``dr.sync_thread()``);
-* filtered shadow maps (003 ch. 3 tables, as ratios from one run): cost vs kernel size
+* filtered shadow maps ([Buljan 2020, ch. 3] tables, as ratios from one run): cost vs kernel size
   (1×1 … 7×7) and vs shadow-map size (512 … 2048) for PCF, VSM, ESM, EVSM;
 * a 50-value sweep of one continuous parameter per technique: kernels compiled after the first
   value (0 when parameters are opaque) and kernel-cache hits;
@@ -142,7 +142,7 @@ def _warm_time(t, frame, p, repeats):
 
 
 def bench_filters(scene="contact", res=256, kernels=(1, 3, 5, 7), map_sizes=(512, 1024, 2048), repeats=5):
-    """Cost vs kernel size and vs shadow-map size for PCF and the prefiltered maps (003 ch. 3
+    """Cost vs kernel size and vs shadow-map size for PCF and the prefiltered maps ([Buljan 2020, ch. 3]
     tables): PCF should grow with the kernel's area, prefiltered ones stay nearly flat;
     prefiltered ones grow with the map size (they filter every texel), PCF not."""
     sc = load_scene(scene, (res, res))
@@ -251,7 +251,7 @@ def _markdown(res: dict) -> str:
     if res.get("fit"):
         lines += fit_markdown(res["fit"])
     if res.get("sdf"):
-        lines += ["", f"SDF soft shadows (004 ch. 6): see `{Path(res['sdf']).name}` (`shadowlab bench --only sdf`)."]
+        lines += ["", f"SDF soft shadows ([Bán 2019, ch. 6]): see `{Path(res['sdf']).name}` (`shadowlab bench --only sdf`)."]
     return "\n".join(lines) + "\n"
 
 
@@ -272,7 +272,7 @@ def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
                                    kernels=(1, 3) if quick else (1, 3, 5, 7), repeats=2 if quick else 5)
     res["sweep"] = bench_sweep(values=5 if quick else 50)
     res["fit"] = bench_fit(quick)  # pcss.light_size: Adam vs grid search (the fitting goals)
-    res["sdf"] = str(sdf_bench(Path(out), quick=quick))  # 004 ch. 6: written to sdf.json / sdf.md
+    res["sdf"] = str(sdf_bench(Path(out), quick=quick))  # [Bán 2019, ch. 6]: written to sdf.json / sdf.md
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "bench.json", res)

@@ -1,8 +1,8 @@
-"""``shadowlab bench --only sdf``: the single-ray soft-shadow measurements of 004_15e39f1e68ecd753.txt ch. 6.
+"""``shadowlab bench --only sdf``: the single-ray soft-shadow measurements of [Bán 2019, ch. 6].
 
 Measured in one run (never asserted in tests), written to ``OUT/sdf.json`` and ``OUT/sdf.md``:
 
-* **variants** (004 Tables 6.1–6.3): the shadow pass of ``base``, ``linear``, ``discrete`` and
+* **variants** ([Bán 2019, Tables 6.1–6.3]): the shadow pass of ``base``, ``linear``, ``discrete`` and
   ``convex``, directions A and B, ε ∈ {1/10, 1/20, 1/30, 1/256}, on ``sdf_simple``,
   ``sdf_composite`` and ``mandelbulb``: warm time (median of repeats after ``dr.sync_thread()``),
   SDF evaluations per shaded point (machine-independent), the fraction of points stopped by
@@ -11,7 +11,7 @@ Measured in one run (never asserted in tests), written to ``OUT/sdf.json`` and `
   every variant shares. Baselines in the same table: ``sdf_hard`` (one sphere trace toward the
   light) and ``sdf_quilez``. Penumbra RMSE against the scene's stored 128² truth (V; the
   mandelbulb's is the Monte-Carlo cone reference) for each configuration.
-* **error vs ε and light radius** (004 §6.3, Fig. 6.10): ``sdf_composite`` with its light's
+* **error vs ε and light radius** ([Bán 2019, §6.3, Fig. 6.10]): ``sdf_composite`` with its light's
   radius set to 0.25, 0.5, 1, 2, 4 (a Mitsuba truth rendered per radius), ``linear``, direction
   A, ε = 1/2 … 1/256: time and penumbra RMSE per (radius, ε), and per radius the largest ε with
   no visible gain, by two criteria: (a) the image differs from the ε = 1/256 image by at most
@@ -173,7 +173,7 @@ def _markdown(res: dict) -> str:
          f"{m['variant']}. All figures from one run; i_max = {I_MAX} (no march stops early unless noted).", ""]
     for name, d in res["variants"].items():
         W = d["resolution"][0]
-        L += [f"## {name}: shadow pass, {W}×{W} (004 Tables 6.1–6.3)", "",
+        L += [f"## {name}: shadow pass, {W}×{W} ([Bán 2019, Tables 6.1–6.3])", "",
               "Each cell: warm time of the shadow pass in ms (SDF evaluations per point) · penumbra RMSE against the "
               f"{d['error_resolution'][0]}² truth ({d['penumbra_pixels']} penumbra pixels). Fastest per row in bold.", "",
               "| ε | D | base | linear | discrete | convex | base / linear |", "|---|---|---|---|---|---|---|"]
@@ -191,7 +191,7 @@ def _markdown(res: dict) -> str:
     rc = res["radius_curve"]
     eps_list = sorted({r["eps"] for c in rc["curve"].values() for r in c["by_eps"].values()}, reverse=True)
     L += [f"## Error and time vs ε and light radius ({rc['scene']}, {rc['resolution'][0]}², linear, direction A; "
-          "004 §6.3, Fig. 6.10)", "",
+          "[Bán 2019, §6.3, Fig. 6.10])", "",
           "Penumbra RMSE against a Mitsuba truth rendered per radius · warm time (ms).", "",
           "| radius | penumbra px | " + " | ".join(_frac(e) for e in eps_list) + " | largest ε: no visible change | "
           "largest ε: no error gain | thesis |", "|---|---|" + "---|" * (len(eps_list) + 3)]

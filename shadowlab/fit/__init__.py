@@ -1,4 +1,4 @@
-"""Parameter fitting (DESIGN.md, ``fit.fit(technique, frame, reference, params)``): the empirical
+"""Parameter fitting (docs/ARCHITECTURE.md, ``fit``): the empirical
 parameters of a technique (light size, biases, exponents, minimum variance, bleeding reduction,
 filter sizes) fitted against the scene's Mitsuba ground truth.
 

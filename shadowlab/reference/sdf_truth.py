@@ -1,9 +1,9 @@
-"""Ground truth of ``"sdf"`` scenes, those with SDF-only content [Bálint 2019, §3.3.1].
+"""Ground truth of ``"sdf"`` scenes, those with SDF-only content [Bán 2019, §3.3.1].
 
 Mitsuba does not see ``[[sdf]]`` objects (a Mandelbulb has no mesh or Mitsuba primitive), so
 ``shadowlab reference`` cannot ask Mitsuba for their truth. The reference of such a scene is the
 thesis' own: the Monte-Carlo integral over the light's disk inside the cone from each surface
-point to the spherical light (004 §3.3.1), ``shadowlab.sdf.soft.mc_cone_visibility(sdf, points,
+point to the spherical light ([Bán 2019, §3.3.1]), ``shadowlab.sdf.soft.mc_cone_visibility(sdf, points,
 normals, light_sphere(scene, light), n)``, evaluated at the points of the cone-traced G-buffer. Its meta.json says so
 (``truth``: ``"sdf_mc_cone"``, ``not_mitsuba_truth``), and the ``mitsuba.*`` channels are absent.
 
@@ -29,7 +29,7 @@ from .truth import LightTruth, Truth
 
 TRUTH_KIND = "sdf_mc_cone"
 NOTE = ("scene has SDF-only objects ([[sdf]]) that Mitsuba does not see: this truth is the Monte-Carlo cone "
-        "reference of 004 §3.3.1 (shadowlab.sdf.soft.mc_cone_visibility, sphere-traced shadow rays) at the "
+        "reference of [Bán 2019, §3.3.1] (shadowlab.sdf.soft.mc_cone_visibility, sphere-traced shadow rays) at the "
         "cone-traced G-buffer's points, not a Mitsuba truth; V is cosine-weighted, A the solid-angle fraction.")
 
 
@@ -39,7 +39,7 @@ def render_truth(frame, *, samples: int = 1024, seed: int = 0, progress=None):
     bad = [f"{l.name} ({l.kind})" for l in frame.lights if l.kind != "sphere"]
     if bad:
         raise InputError(f"scene {scene.name!r}: the Monte-Carlo cone reference of SDF-only scenes needs spherical "
-                         f"lights (004 §3.2), not {', '.join(bad)}; make them kind = \"sphere\"")
+                         f"lights ([Bán 2019, §3.2]), not {', '.join(bad)}; make them kind = \"sphere\"")
     if frame.sdf is None:
         raise InputError(f"scene {scene.name!r} has no signed distance field")
     t0 = time.perf_counter()

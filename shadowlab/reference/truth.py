@@ -1,6 +1,6 @@
 """Ground truth: per-light visibility at the G-buffer points and the shaded image (Mitsuba).
 
-Visibility of light L at shading point x (DESIGN.md, Reference):
+Visibility of light L at shading point x (docs/ARCHITECTURE.md, Reference):
 
     V_L(x) = ∫ f(x, y) v(x, y) dy / ∫ f(x, y) dy     (shadowed / unshadowed direct light)
     A_L(x) = mean of v over the emitter's sample domain (visible area or solid-angle fraction)

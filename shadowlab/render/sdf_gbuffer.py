@@ -1,12 +1,12 @@
-"""The cone-traced G-buffer of an SDF scene [Bálint 2019, §2.9] and its unshadowed light.
+"""The cone-traced G-buffer of an SDF scene [Bán 2019, §2.9] and its unshadowed light.
 
 Camera rays are the same as the Mitsuba G-buffer's (``sensor.sample_ray`` at pixel (sub-)centres,
 :func:`shadowlab.render.gbuffer.pixel_uv` order), each traced as the *pixel-covering cone* of
-004 §2.9: apex at the camera, half-angle ``α`` with ``tanα`` = half the diagonal of a (sub-)pixel
+[Bán 2019, §2.9]: apex at the camera, half-angle ``α`` with ``tanα`` = half the diagonal of a (sub-)pixel
 at unit distance. :func:`shadowlab.sdf.trace.cone_trace` stops at the *surface point* ``p``: the
 ball of radius ``f(p)`` around it (``radius``) does not cross the surface and covers the pixel, so
 thin objects cannot fall between pixel centres, and rays started from it do not crawl along the
-surface (004 §2.9). It is the shading point, as in the thesis: normals ``n`` are the normalised
+surface ([Bán 2019, §2.9]). It is the shading point, as in the thesis: normals ``n`` are the normalised
 gradient there, depths are measured to it, and the soft-shadow cone starts from its ball.
 
 Measured on the Mandelbulb, shadow rays from points on the fractal itself (sphere traced to
@@ -37,7 +37,7 @@ from .shading import _hash32
 
 @dataclass
 class SDFGBuffer(GBuffer):
-    """A :class:`GBuffer` from cone tracing (``p`` = the surface points of 004 §2.9), plus their
+    """A :class:`GBuffer` from cone tracing (``p`` = the surface points of [Bán 2019, §2.9]), plus their
     balls and the centre rays' own hits."""
 
     radius: object = None       # mi.Float f(p): radius of the surface point's empty ball, covering the pixel

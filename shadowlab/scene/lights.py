@@ -120,13 +120,13 @@ def mitsuba_dict(light: LightSpec, scene_center, scene_radius) -> tuple[str, dic
 
 def light_sphere(scene, light, fit: str = "equal_area") -> tuple:
     """(centre (3,), radius) of the sphere that stands for ``light`` (a LightSpec) in the SDF
-    soft-shadow algorithms of :mod:`shadowlab.sdf.soft` [Bálint 2019, §3.2, §5.4].
+    soft-shadow algorithms of :mod:`shadowlab.sdf.soft` [Bán 2019, §3.2, §5.4].
 
     | light kind | centre | radius, ``fit="equal_area"`` | radius, ``fit="bounding"`` |
     |---|---|---|---|
     | sphere, point (r) | position | r | r |
     | disk, spot (r) | position | r (the disk seen face-on) | r |
-    | rect w × h | position | √(w·h/π) (the disk of equal area) | ½√(w² + h²) [Bálint 2019, §5.4] |
+    | rect w × h | position | √(w·h/π) (the disk of equal area) | ½√(w² + h²) [Bán 2019, §5.4] |
     | directional (θ) | scene centre − D·direction | D·tan(θ/2) | D·tan(θ/2) |
 
     with D = ``SUN_DISTANCE`` scene radii, where the ground truth puts the sun's disk. Delta

@@ -1,4 +1,4 @@
-"""The ``[[sdf]]`` tables of a scene file: SDF-only objects [Bálint 2019, §2.4–2.6, §6].
+"""The ``[[sdf]]`` tables of a scene file: SDF-only objects [Bán 2019, §2.4–2.6, §6].
 
 Objects that have no Mitsuba twin (a Mandelbulb, CSG solids, capsules, planes) are declared in
 the scene TOML under ``[[sdf]]``; they join the SDF twins of the ``[[shapes]]``

@@ -5,7 +5,7 @@ twin in :mod:`shadowlab.sdf.field` (:func:`~shadowlab.sdf.field.twin_of`), built
 ``to_world`` matrices Mitsuba loads (:func:`shadowlab.scene.build.shape_dicts`); the SDF-only
 objects of the ``[[sdf]]`` tables (:mod:`shadowlab.scene.sdf_spec`) join them. So one scene file
 gives the Mitsuba scene (the ground truth of a ``"mitsuba"`` scene) and its SDF
-[Bálint 2019, §2.4–2.6].
+[Bán 2019, §2.4–2.6].
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
-"""Signed distance functions and distance estimates in Dr.Jit (004_15e39f1e68ecd753.txt §2.4–2.6).
+"""Signed distance functions and distance estimates in Dr.Jit ([Bán 2019, §2.4–2.6]).
 
 An :class:`SDF` maps world points to a signed distance ``f`` whose zero set is the surface,
-negative inside (004 §2.4.3). Every class here is *Lipschitz with constant 1*
+negative inside ([Bán 2019, §2.4.3]). Every class here is *Lipschitz with constant 1*
 (``|f(p) − f(q)| ≤ |p − q|``) and a *bound*: ``|f(p)|`` never exceeds the Euclidean distance of
-``p`` to the surface (004 §2.4.4, a distance estimate), which is all sphere tracing needs.
+``p`` to the surface ([Bán 2019, §2.4.4], a distance estimate), which is all sphere tracing needs.
 ``exact`` says when it is the true signed distance (the primitives, similarity transforms,
-offsets of exact fields); CSG results are bounds only (004 §2.6, Theorem 1).
+offsets of exact fields); CSG results are bounds only ([Bán 2019, §2.6], Theorem 1).
 
 * primitives (§2.4.1): :class:`Plane`, :class:`Sphere`, :class:`Box` (optionally rounded),
   :class:`Cylinder` (capped), :class:`Capsule`, :class:`Segment`;
@@ -14,7 +14,7 @@ offsets of exact fields); CSG results are bounds only (004 §2.6, Theorem 1).
   singular value of its linear part, which keeps a bound;
 * CSG (§2.6, Theorem 1): :class:`Union` ``min``, :class:`Intersection` ``max``,
   :class:`Difference` ``max(f, −g)``; offset (§2.6.1): :class:`Offset` ``f − d``;
-* :class:`Mandelbulb`: the power-8 distance estimator (004 §6, Fig. 6.9; Quílez 2009), a
+* :class:`Mandelbulb`: the power-8 distance estimator ([Bán 2019, §6, Fig. 6.9]; [Quílez 2009]), a
   symbolic loop with bailout.
 
 :func:`twin_of` is the SDF of one of Mitsuba's canonical primitives (rectangle, disk, cube,
@@ -64,11 +64,11 @@ def _const(a) -> object:
 
 
 class SDF:
-    """A signed distance function (or estimate) of a solid, in world coordinates (004 §2.4).
+    """A signed distance function (or estimate) of a solid, in world coordinates ([Bán 2019, §2.4]).
 
     ``distance(p)`` (mi.Float), ``gradient(p)`` (normalised ∇f by central differences),
     ``convex`` (True iff this is one convex solid: what the convex-optimised cone trace of
-    004 §4.4.3 may assume), ``primitives`` (the leaf objects: a union lists its members' leaves,
+    [Bán 2019, §4.4.3] may assume), ``primitives`` (the leaf objects: a union lists its members' leaves,
     any other node is one leaf), ``bbox_min`` / ``bbox_max`` (numpy world bounds; ±inf for
     unbounded solids such as a plane), ``exact`` (true signed distance, not just a bound),
     ``name`` and ``albedo`` (set by :meth:`named`; used by the cone-traced G-buffer).
@@ -129,7 +129,7 @@ class SDF:
 
 
 class Plane(SDF):
-    """Half-space ``⟨x, n⟩ ≤ height`` (004 §2.4.1: ``f_n(x) = ⟨x, n⟩``, shifted by ``height``
+    """Half-space ``⟨x, n⟩ ≤ height`` ([Bán 2019, §2.4.1]: ``f_n(x) = ⟨x, n⟩``, shifted by ``height``
     along the unit normal ``n``): the exact signed distance; unbounded.
 
     >>> import mitsuba as mi
@@ -153,7 +153,7 @@ class Plane(SDF):
 
 
 class Sphere(SDF):
-    """Ball of radius ``r`` around ``center`` (004 §2.4.1 and §2.5: ``‖x − c‖ − r``), exact.
+    """Ball of radius ``r`` around ``center`` ([Bán 2019, §2.4.1] and §2.5: ``‖x − c‖ − r``), exact.
 
     >>> import mitsuba as mi
     >>> float(Sphere((1, 0, 0), 0.5).distance(mi.Point3f(1, 0, 0))[0])
@@ -176,7 +176,7 @@ class Sphere(SDF):
 
 class Box(SDF):
     """Axis-aligned box of half extents ``half`` around ``center``, edges rounded with radius
-    ``rounding`` (the rounded box is the offset of 004 §2.6.1, Fig. 2.5, of the box shrunk by
+    ``rounding`` (the rounded box is the offset of [Bán 2019, §2.6.1, Fig. 2.5], of the box shrunk by
     ``rounding``, so its outer extents stay ``half``): exact
     ``‖max(q, 0)‖ + min(max_i q_i, 0) − rounding`` with ``q = |x − c| − (half − rounding)``.
     Rotate it with :class:`Transformed`.
@@ -204,7 +204,7 @@ class Box(SDF):
 
 
 class Segment(SDF):
-    """The segment from ``a`` to ``b`` (004 §2.4.1:
+    """The segment from ``a`` to ``b`` ([Bán 2019, §2.4.1]:
     ``‖p − clamp(⟨b, p⟩ / ⟨b, b⟩) b‖`` relative to ``a``): exact unsigned distance (no interior).
 
     >>> import mitsuba as mi
@@ -233,7 +233,7 @@ class Segment(SDF):
 
 
 class Capsule(Segment):
-    """Capsule: the segment ``a``–``b`` offset by ``radius`` (004 §2.6.1, Fig. 2.6a), exact.
+    """Capsule: the segment ``a``–``b`` offset by ``radius`` ([Bán 2019, §2.6.1, Fig. 2.6]a), exact.
 
     >>> import mitsuba as mi
     >>> float(Capsule((0, 0, 0), (0, 2, 0), 0.5).distance(mi.Point3f(0, 3, 0))[0])
@@ -248,7 +248,7 @@ class Capsule(Segment):
 
 
 class Cylinder(SDF):
-    """Solid capped cylinder of ``radius`` with axis from ``a`` to ``b`` (004 §2.4, the cylinder
+    """Solid capped cylinder of ``radius`` with axis from ``a`` to ``b`` ([Bán 2019, §2.4], the cylinder
     among the primitives): with ``h`` the axial coordinate from the middle, ``ρ`` the distance
     from the axis and ``d = (ρ − r, |h| − L/2)``, ``f = min(max(d), 0) + ‖max(d, 0)‖``: exact.
 
@@ -285,7 +285,7 @@ class Cylinder(SDF):
 
 class Transformed(SDF):
     """``f ∘ T⁻¹`` for an affine ``T(x) = A x + t`` given as a 4×4 world-from-local matrix
-    (004 §2.5). Distances are multiplied by the smallest singular value σ of ``A``: for a
+    ([Bán 2019, §2.5]). Distances are multiplied by the smallest singular value σ of ``A``: for a
     similarity (rotation, translation, uniform scale s) σ = s and the result is exact when the
     child is; otherwise (non-uniform scale) it is a bound: ``|f(T⁻¹x) − f(T⁻¹y)| ≤ ‖x − y‖ / σ``.
 
@@ -358,7 +358,7 @@ def transform(child: SDF, translate=(0.0, 0.0, 0.0), rotate=(), scale=1.0) -> SD
 
 
 class Union(SDF):
-    """``min`` of the children (004 §2.6, Theorem 1): a bound, exact outside all children when
+    """``min`` of the children ([Bán 2019, §2.6], Theorem 1): a bound, exact outside all children when
     they do not overlap. ``primitives`` lists the children's leaves.
 
     >>> import mitsuba as mi
@@ -390,7 +390,7 @@ class Union(SDF):
 
 
 class Intersection(SDF):
-    """``max`` of the children (004 §2.6, Theorem 1): a bound; convex if every child is.
+    """``max`` of the children ([Bán 2019, §2.6], Theorem 1): a bound; convex if every child is.
 
     >>> import mitsuba as mi
     >>> lens = Intersection(Sphere((-0.5, 0, 0), 1.0), Sphere((0.5, 0, 0), 1.0))
@@ -417,7 +417,7 @@ class Intersection(SDF):
 
 
 class Difference(SDF):
-    """``a \\ b``: ``max(f_a, −f_b)`` (004 §2.6, Theorem 1), a bound; not convex in general.
+    """``a \\ b``: ``max(f_a, −f_b)`` ([Bán 2019, §2.6], Theorem 1), a bound; not convex in general.
 
     >>> import mitsuba as mi
     >>> cup = Difference(Box((1, 1, 1)), Sphere((0, 1, 0), 0.8))
@@ -437,10 +437,10 @@ class Difference(SDF):
 
 
 class Offset(SDF):
-    """The offset ``S_d`` of 004 §2.6.1: ``f − d`` grows the solid by ``d > 0`` (rounded edges)
+    """The offset ``S_d`` of [Bán 2019, §2.6.1]: ``f − d`` grows the solid by ``d > 0`` (rounded edges)
     and erodes it for ``d < 0``; exact for exact ``f`` and ``d ≥ 0``. Erosion is only a bound:
     the eroded solid's edges and corners lie √2·|d| and √3·|d| inside the original ones
-    (004 Fig. 6.20), farther than ``f`` + |d| says. Convexity is kept either way.
+    ([Bán 2019, Fig. 6.20]), farther than ``f`` + |d| says. Convexity is kept either way.
 
     >>> import mitsuba as mi
     >>> float(Offset(Segment((0, 0, 0), (0, 1, 0)), 0.25).distance(mi.Point3f(1, 0.5, 0))[0])
@@ -460,7 +460,7 @@ class Offset(SDF):
 
 
 class Mandelbulb(SDF):
-    """Distance estimator of the power-``power`` Mandelbulb (004 §6, Fig. 6.9, after Quílez 2009):
+    """Distance estimator of the power-``power`` Mandelbulb ([Bán 2019, §6, Fig. 6.9], after [Quílez 2009]):
     iterate ``w ← w^power + p`` in spherical (triplex) form with the running derivative
     ``dr ← power · |w|^(power−1) · dr + 1`` until ``|w| > bailout`` or ``iterations``, then
     ``DE = ½ · ln|w| · |w| / dr``, negative inside. The set lies in the ball of radius

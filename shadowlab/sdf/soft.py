@@ -1,12 +1,12 @@
-"""Single-ray soft shadows of signed distance fields [Bálint 2019, ch. 3–4].
+"""Single-ray soft shadows of signed distance fields [Bán 2019, ch. 3–4].
 
 The light is a sphere (centre ``c``, radius ``R``), the shading point carries the *surface
-sphere* of 004 §2.9 (centre ``p``, radius ``R0``), and the shadow is the fraction of the light
-seen inside the cone tangent to both spheres (004 §3.2, Fig. 4.1). Everything here is a
+sphere* of [Bán 2019, §2.9] (centre ``p``, radius ``R0``), and the shadow is the fraction of the light
+seen inside the cone tangent to both spheres ([Bán 2019, §3.2, Fig. 4.1]). Everything here is a
 Dr.Jit symbolic loop over all points at once (LLVM); parameters that change between runs
 (ε, i_max, radii) are opaque, so a new value reuses the compiled kernel.
 
-**τ and τ⁻¹** (004 §4.1, §4.3.1). A straight occluder edge at relative distance ``r`` from the
+**τ and τ⁻¹** ([Bán 2019, §4.1], §4.3.1). A straight occluder edge at relative distance ``r`` from the
 centre of the unit disk leaves ``τ(r) = ½ + (r·√(1 − r²) + arcsin r)/π`` of it lit (clamped to
 0 / 1 outside [−1, 1], the τ̂ of the thesis). ``τ⁻¹`` is bisection on [−1, 1]
 (:data:`TAU_INV_ITERATIONS` = 22 halvings: |error in r| ≤ 2⁻²² < 1e-6; Newton fails at ±1 where
@@ -22,7 +22,7 @@ Starting from ``R0^L = R0`` keeps a flat receiver at ``ϱ = 1`` where the march 
 tangent to both spheres would begin at ``R0/cos α`` and see the receiver as an occluder at
 ``ϱ = cos α``, a full level ε of ``discrete``).
 Direction A marches from ``p`` to ``c``; direction B from ``c`` to ``p`` with ``R0^L`` and
-``R1^L`` swapped (004 §4.3.2). When the SDF is bounded the march is clipped to the segment
+``R1^L`` swapped ([Bán 2019, §4.3.2]). When the SDF is bounded the march is clipped to the segment
 inside its bounding box grown by the largest cone radius (outside it ``f ≥ ρ``: nothing to find).
 
 **The marching algorithms** (:func:`march`), with the relative distance
@@ -49,7 +49,7 @@ radii ``R^T > R^C``:
   step. (The thesis uses its engine's convex-optimised cone trace without specifying it; this is
   that idea in its gradient-free form. A primitive here is a leaf of :attr:`SDF.primitives`.)
 
-Every step is the cone-trace step of the C cone, ``(f − ρ_C(t))/(1 + |tanα^C|)`` (004 §2.8), the
+Every step is the cone-trace step of the C cone, ``(f − ρ_C(t))/(1 + |tanα^C|)`` ([Bán 2019, §2.8]), the
 loop runs while ``t < t_end`` and ``i < i_max``. The result of ``base``, ``linear`` and
 ``convex`` is ``τ̂(f_min/ρ(t_min))`` at the last detection (``t_min``, ``f_min``), recomputed
 outside the loop from the detached ``t_min`` and ``f_min``: the same bits as the loop's own
@@ -57,9 +57,9 @@ value, and, when the light radius is a Dr.Jit variable with gradients, ``d/dR`` 
 by the envelope theorem (the argmin does not move to first order) — the light radius is
 differentiable without reverse-mode AD through the loop. ``discrete`` returns its level ``m``.
 
-**Hard shadows** (004 §3.1): :func:`shadowlab.sdf.trace.hard_visibility` — sphere tracing toward
+**Hard shadows** ([Bán 2019, §3.1]): :func:`shadowlab.sdf.trace.hard_visibility` — sphere tracing toward
 the light's centre.
-**Anti-aliased hard shadows** (004 §4.3.3): the same single-ray algorithms with ``R = 0``; the
+**Anti-aliased hard shadows** ([Bán 2019, §4.3.3]): the same single-ray algorithms with ``R = 0``; the
 surface sphere keeps the cone open, so the shadow edge is a ramp about one pixel wide.
 
 **Baseline** (:func:`quilez`): Quílez (2010) and Aaltonen's (2018) improved penumbra estimate:
@@ -68,9 +68,9 @@ with ``y = h²/(2·h_prev)``, ``d = √(h² − y²)``), 0 on a hit. ``k`` is th
 from the point to the light has ``tanα = R/√(d² − R²)``, so ``k = 1/tanα`` makes ``k·h/t`` the
 relative distance ϱ of the thesis (``k = 0`` in the technique = this mapping, per point). The
 result ``clamp(res, 0, 1)`` is 0 for ϱ ≤ 0: the inner half of the true penumbra (ϱ ∈ [−1, 0])
-is umbra, the penumbra comes out about half as wide as the truth (004 §6.4, Fig. 6.16a).
+is umbra, the penumbra comes out about half as wide as the truth ([Bán 2019, §6.4, Fig. 6.16]a).
 
-**Monte-Carlo reference in the cone** (004 §3.3, §3.3.1): :func:`mc_cone_visibility` — Halton
+**Monte-Carlo reference in the cone** ([Bán 2019, §3.3], §3.3.1): :func:`mc_cone_visibility` — Halton
 points (bases 2, 3) on the disk of the cone at the light, in polar coordinates either
 ``r = u`` weighted by ``r`` (``scheme="r_weighted"``) or ``r = √u`` (``scheme="sqrt"``), each one
 sphere-traced shadow ray. Per point the Halton set is shifted by a Cranley–Patterson rotation
@@ -102,11 +102,11 @@ DETECT_TOL = 1e-4                 # a detection needs ϱ < R^T − this: float r
 
 
 # ----------------------------------------------------------------------------------------------
-# τ and its inverse (004 §4.1, §4.3.1)
+# τ and its inverse ([Bán 2019, §4.1], §4.3.1)
 
 def tau(r):
     """Lit fraction of the unit disk behind a straight edge at signed relative distance ``r``
-    (004 §4.1): ``½ + (r√(1 − r²) + arcsin r)/π``, clamped to [0, 1] outside [−1, 1] (τ̂).
+    ([Bán 2019, §4.1]): ``½ + (r√(1 − r²) + arcsin r)/π``, clamped to [0, 1] outside [−1, 1] (τ̂).
 
     >>> round(float(tau(np.array(0.0))), 6), float(tau(np.array(-1.0))), float(tau(np.array(2.0)))
     (0.5, 0.0, 1.0)
@@ -119,7 +119,7 @@ def tau(r):
 
 
 def tau_inv(m, iterations: int = TAU_INV_ITERATIONS):
-    """τ⁻¹ by bisection on [−1, 1] (004 §4.3.1): ``iterations`` halvings (a fixed, unrolled
+    """τ⁻¹ by bisection on [−1, 1] ([Bán 2019, §4.3.1]): ``iterations`` halvings (a fixed, unrolled
     loop); m ≤ 0 gives −1, m ≥ 1 gives 1.
 
     >>> abs(float(tau_inv(np.array(0.5)))) < 1e-6, round(float(tau_inv(tau(np.array(-0.3)))), 6)
@@ -213,7 +213,7 @@ def make_cone(p, R0, center, R, direction: str = "A", bbox=None) -> Cone:
 
 
 # ----------------------------------------------------------------------------------------------
-# the marching algorithms (004 §4.3–4.4)
+# the marching algorithms ([Bán 2019, §4.3–4.4])
 
 @dataclass
 class March:
@@ -248,7 +248,7 @@ def _state(cone):
 
 
 def _step(F, RC, cone, t):
-    """Cone-trace step of the C cone (004 §2.8): (f − R^C·ρ(t)) / (1 + |R^C·tanα|)."""
+    """Cone-trace step of the C cone ([Bán 2019, §2.8]): (f − R^C·ρ(t)) / (1 + |R^C·tanα|)."""
     return (F - RC * cone.rho(t)) / (1.0 + dr.abs(RC * cone.tan))
 
 
@@ -407,7 +407,7 @@ def march(sdf, cone: Cone, variant: str = "linear", *, eps: float = 1.0 / 30, i_
 
 
 def plane_residual(sdf, m: March):
-    """How far the occluder at the minimum is from the thesis' single-plane model (004 §4.1,
+    """How far the occluder at the minimum is from the thesis' single-plane model ([Bán 2019, §4.1],
     Fig. 4.4): at x = s(t_min), with ρ = ρ(t_min), g the unit SDF gradient projected across the
     axis and e ⟂ g, v, the plane predicts f(x ± ρg) = f_min ± ρ and f(x ± ρe) = f_min; returns
     max |f − prediction| / ρ over the four probes (0 for a plane parallel to the axis; 1 where
@@ -428,7 +428,7 @@ def plane_residual(sdf, m: March):
 
 
 def edge_line(sdf, m: March):
-    """The occluder's edge in the cross-section at the minimum (004 §5.3.1): returns
+    """The occluder's edge in the cross-section at the minimum ([Bán 2019, §5.3.1]): returns
     (x_min, unit direction g⊥ across the axis pointing *away* from the occluder, f_min): a ray
     crossing that plane at y is blocked iff ⟨y − x_min, g⊥⟩ ≤ −f_min."""
     import mitsuba as mi
@@ -444,7 +444,7 @@ def edge_line(sdf, m: March):
 # the Quílez / Aaltonen baseline
 
 def _quilez_ratio(h, ph, t, improved: bool):
-    """h/t (Quílez 2010) or d/max(0, t − y), y = h²/(2·h_prev), d = √(h² − y²) (Aaltonen 2018);
+    """h/t ([Quílez 2010]) or d/max(0, t − y), y = h²/(2·h_prev), d = √(h² − y²) ([Aaltonen 2018]);
     the estimate is k times its minimum along the ray."""
     if improved:
         y = h * h / (2.0 * ph)
@@ -499,7 +499,7 @@ def quilez(sdf, p, center, R, *, k=None, variant: str = "quilez2010", eps: float
 
 
 # ----------------------------------------------------------------------------------------------
-# Monte-Carlo reference inside the cone (004 §3.3, §3.3.1)
+# Monte-Carlo reference inside the cone ([Bán 2019, §3.3], §3.3.1)
 
 def halton(n: int, base: int) -> np.ndarray:
     """The first ``n`` points (indices 1 … n) of the radical inverse in ``base`` (float64)."""
@@ -621,7 +621,7 @@ def mc_cone_visibility(sdf, points, normals, light, n: int = 256, *, scheme: str
                        measure: str = "solid_angle", cosine: bool | str = False, seed: int = 0, eps: float = 1e-4,
                        i_max: int = 512, clearance: float | None = None, radius: float | None = None,
                        return_iterations: bool = False):
-    """Monte-Carlo visibility of a spherical light inside the cone from each point (004 §3.3.1).
+    """Monte-Carlo visibility of a spherical light inside the cone from each point ([Bán 2019, §3.3.1]).
 
     ``light``: the light's sphere, a ``(centre, radius)`` pair (a scene light's sphere:
     :func:`shadowlab.scene.lights.light_sphere`); ``radius`` overrides the radius.

@@ -1,13 +1,13 @@
-"""Sphere tracing and cone tracing of signed distance fields (004_15e39f1e68ecd753.txt §2.7–2.9, §3.1).
+"""Sphere tracing and cone tracing of signed distance fields ([Bán 2019, §2.7–2.9], §3.1).
 
-* :func:`sphere_trace` — Hart's sphere tracing (004 §2.7, Algorithm 2): step by ``f``; a hit
+* :func:`sphere_trace` — Hart's sphere tracing ([Bán 2019, §2.7], Algorithm 2): step by ``f``; a hit
   when ``f < eps``.
-* :func:`cone_trace` — the cone trace of 004 §2.8: sphere tracing of the offset field
+* :func:`cone_trace` — the cone trace of [Bán 2019, §2.8]: sphere tracing of the offset field
   ``F(x) = (f(x) − R0 − t·tanα) / (1 + |tanα|)``, stopping when the cone of radius
   ``R0 + t·tanα`` touches the surface (``f`` within ``(1 + κ)`` of the cone radius). With the
-  pixel-covering cone of a camera ray (004 §2.9) the stop point is the *surface point* of the
+  pixel-covering cone of a camera ray ([Bán 2019, §2.9]) the stop point is the *surface point* of the
   thesis: the ball of radius ``f`` around it does not cross the surface and covers the pixel.
-* :func:`hard_visibility` — hard shadows (004 §3.1): sphere trace from a surface point towards
+* :func:`hard_visibility` — hard shadows ([Bán 2019, §3.1]): sphere trace from a surface point towards
   a light position.
 
 All three are Dr.Jit symbolic loops (``@dr.syntax``) over every lane at once; ``eps``, ``t_max``
@@ -33,7 +33,7 @@ def _f(v):
 
 
 def sphere_trace(sdf, o, d, t_max, *, eps=1e-4, i_max=256, t_min=0.0):
-    """Sphere-trace ``sdf`` along rays ``o + t·d`` (``d`` unit length) from ``t_min`` (004 §2.7).
+    """Sphere-trace ``sdf`` along rays ``o + t·d`` (``d`` unit length) from ``t_min`` ([Bán 2019, §2.7]).
 
     Returns ``(hit, t, iterations)``: ``hit`` (mi.Bool) where ``f < eps`` was reached before
     ``t_max`` and ``i_max`` steps; ``t`` (mi.Float) the stop distance (``t_max`` for a miss);
@@ -62,7 +62,7 @@ def _sphere_loop(sdf, o, d, t, t_max, eps, imax):
 
 def cone_trace(sdf, o, d, t_max, tan_alpha, *, r0=0.0, eps=1e-4, i_max=256, kappa=CONE_KAPPA):
     """Cone-trace ``sdf`` with cones of apex radius ``r0`` and half-angle ``atan(tan_alpha)``
-    around rays ``o + t·d`` (004 §2.8): sphere tracing of ``(f − r0 − t·tanα) / (1 + |tanα|)``.
+    around rays ``o + t·d`` ([Bán 2019, §2.8]): sphere tracing of ``(f − r0 − t·tanα) / (1 + |tanα|)``.
 
     Returns ``(hit, t, iterations)``; a hit where ``f(o + t·d) < (1 + κ)·(r0 + t·tanα) + eps``.
     """
@@ -90,7 +90,7 @@ def _cone_loop(sdf, o, d, t_max, ta, r0, eps, k1, imax):
 
 
 def hard_visibility(sdf, p, n, target, *, eps=1e-4, i_max=256, offset=None, return_iterations=False):
-    """Hard shadow of a point light at ``target`` (004 §3.1): 1 where the sphere trace from
+    """Hard shadow of a point light at ``target`` ([Bán 2019, §3.1]): 1 where the sphere trace from
     ``p`` (moved off the surface along the normal ``n`` by ``offset``, default 4·eps; ``n=None``:
     ``p`` is already off the surface) reaches ``target`` without a hit, else 0 (mi.Float), and
     the SDF evaluations per lane with ``return_iterations``. ``target`` may be one point or one
