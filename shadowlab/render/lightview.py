@@ -70,8 +70,9 @@ class FrustumSlice:
       ``bound="box"``: the square around the corners' light-space bounding rectangle (tighter,
       changes as the camera turns).
     * light position p = c − λd with λ = ``pull`` · r (Code A.13's DistanceFactor);
-    * ``snap=True`` moves p across the light direction to whole texels (2r / N), so a camera
-      translation moves the map's texel grid only by whole texels: stable cascaded shadow maps.
+    * ``snap=True`` moves p across the light direction to whole texels (the map is one texel
+      wider, half size r·N/(N − 1), so the slice stays inside), so a camera translation moves the
+      map's texel grid only by whole texels: stable cascaded shadow maps.
     * depth range: from the scene's nearest caster toward the light (casters outside the slice
       still shadow it) to the slice's far side.
     """
@@ -310,9 +311,10 @@ def _frustum_slice(light, scene, res: int, fit: FrustumSlice) -> Projection:
         lo, hi = q.min(axis=0), q.max(axis=0)
         cx, cy = 0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])
         half = 0.5 * float(max(hi[0] - lo[0], hi[1] - lo[1])) * 1.0001
-    if fit.snap:                                     # whole-texel steps across the light direction
+    if fit.snap:  # whole-texel steps across the light direction; the centre moves by at most half a
+        half *= res / (res - 1.0)  # texel, so the map grows by one texel to keep the slice inside
         t = 2.0 * half / res
-        cx, cy = math.floor(cx / t) * t, math.floor(cy / t) * t
+        cx, cy = round(cx / t) * t, round(cy / t) * t
     lam = fit.pull * r
     cz = float(Rm[2] @ c) - lam                      # the light position's coordinate along d
     o = Rm[0] * cx + Rm[1] * cy + Rm[2] * cz
