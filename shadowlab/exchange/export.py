@@ -49,6 +49,7 @@ from ..io.png import encode_png
 from ..scene import lights as lights_mod
 from ..scene.build import build, sensor_dict, shape_dicts
 from ..scene.spec import SceneSpec, load_spec, resolve
+from ..render.camera import Camera
 from .mesh import matrix_of, sagitta, triangulate
 from .mitsuba_xml import dict_to_xml
 from .ply import write_ply
@@ -114,26 +115,19 @@ def _rows(M) -> list:
 
 
 def camera_info(scene) -> dict:
-    """camera.json of a built :class:`shadowlab.scene.Scene` (its Mitsuba sensor is the truth's camera)."""
+    """camera.json of a built :class:`shadowlab.scene.Scene`: its :class:`shadowlab.render.camera.Camera`,
+    the truth's Mitsuba sensor written out (clip planes, field of view, matrices)."""
     cam = scene.spec.camera
-    W, H = (int(x) for x in cam.resolution)
-    c2w = matrix_of(scene.sensor.world_transform())
-    w2c = np.linalg.inv(c2w)
-    sd = sensor_dict(cam)  # the truth's camera: its clip planes and field of view
-    near, far = float(sd["near_clip"]), float(sd["far_clip"])
-    assert sd["fov_axis"] == "x"
-    aspect = W / H
-    tx = math.tan(math.radians(sd["fov"]) / 2)
-    ty = tx / aspect
-    P = np.array([[-1 / tx, 0, 0, 0],
-                  [0, 1 / ty, 0, 0],
-                  [0, 0, far / (far - near), -far * near / (far - near)],
-                  [0, 0, 1, 0]], np.float64)
-    flip = np.diag([-1.0, 1.0, -1.0, 1.0])  # Mitsuba camera space -> OpenGL view space
-    gl_P = np.array([[1 / tx, 0, 0, 0],
-                     [0, 1 / ty, 0, 0],
-                     [0, 0, (far + near) / (near - far), 2 * far * near / (near - far)],
-                     [0, 0, -1, 0]], np.float64)
+    camera = Camera.from_scene(scene)
+    W, H = camera.resolution
+    c2w = camera.camera_to_world
+    w2c = camera.world_to_camera
+    near, far = camera.near, camera.far
+    aspect = camera.aspect
+    ty = camera.tan_y
+    P = camera.camera_to_clip()
+    gl_P = camera.proj_gl()
+    gl_V = camera.view_gl
     up_used = [float(x) for x in c2w[:3, 1]]
     return {
         "convention": CAMERA_CONVENTION,
@@ -144,7 +138,7 @@ def camera_info(scene) -> dict:
         "up_used": up_used,
         "forward": [float(x) for x in c2w[:3, 2]],
         "fov_axis": "x",
-        "fov_deg": float(sd["fov"]),
+        "fov_deg": float(camera.fov),
         "fov_y_deg": math.degrees(2 * math.atan(ty)),
         "resolution": [W, H],
         "aspect": aspect,
@@ -154,8 +148,8 @@ def camera_info(scene) -> dict:
         "world_to_camera": _rows(w2c),
         "camera_to_clip": _rows(P),
         "world_to_clip": _rows(P @ w2c),
-        "opengl": {"world_to_view": _rows(flip @ w2c), "view_to_clip": _rows(gl_P),
-                   "world_to_clip": _rows(gl_P @ flip @ w2c)},
+        "opengl": {"world_to_view": _rows(gl_V), "view_to_clip": _rows(gl_P),
+                   "world_to_clip": _rows(gl_P @ gl_V)},
     }
 
 

@@ -22,7 +22,9 @@ from ..errors import InputError
 from ..scene.twins import sdf_of
 from . import sdf_gbuffer
 from .gbuffer import GBuffer, gbuffer, vec_numpy
-from .lightview import LightView, light_view
+from .camera import Camera
+from .lightview import LightView, SceneSphere, light_view
+from .screen import Screen
 from .shading import unshadowed
 
 
@@ -33,6 +35,7 @@ class FrameContext:
     unshadowed: dict                       # light name -> flat mi.Color3f U_L
     sdf: object = None                     # shadowlab.sdf.SDF of the scene, None with meshes
     _views: dict = field(default_factory=dict, repr=False)
+    _cache: dict = field(default_factory=dict, repr=False)
 
     @property
     def lights(self):
@@ -42,17 +45,33 @@ class FrameContext:
     def resolution(self):
         return self.scene.resolution
 
+    @property
+    def camera(self) -> Camera:
+        """The scene's :class:`~shadowlab.render.camera.Camera` at the frame's resolution (made once)."""
+        if "camera" not in self._cache:
+            self._cache["camera"] = Camera.from_scene(self.scene)
+        return self._cache["camera"]
+
+    @property
+    def screen(self) -> Screen:
+        """The G-buffer as screen-space Dr.Jit arrays (:class:`~shadowlab.render.screen.Screen`, made once)."""
+        if "screen" not in self._cache:
+            self._cache["screen"] = Screen.from_frame(self)
+        return self._cache["screen"]
+
     def light_view(self, light_name: str, res: int | None = None, bits: int | None = None,
-                   backface: bool = False) -> LightView:
-        """The light's depth map, cast once per (light, resolution, depth bits, back faces)."""
+                   backface: bool = False, fit=None) -> LightView:
+        """The light's depth map, cast once per (light, resolution, depth bits, back faces, fit);
+        ``fit`` None is :class:`~shadowlab.render.lightview.SceneSphere` (the whole scene)."""
         spec = self.scene.spec.light(light_name)
         if self.scene.kind == "sdf":
             raise InputError(f"scene {self.scene.name!r} has SDF-only objects ([[sdf]]) that Mitsuba does not see, "
                              "so its shadow maps (Mitsuba ray casts from the light) would miss them; compare the "
                              "SDF techniques on it, or the shadow-map techniques on a scene with Mitsuba twins")
-        key = (light_name, int(res or spec.shadow_map), int(bits or spec.depth_bits), bool(backface))
+        fit = SceneSphere() if fit is None else fit
+        key = (light_name, int(res or spec.shadow_map), int(bits or spec.depth_bits), bool(backface), fit)
         if key not in self._views:
-            self._views[key] = light_view(self.scene, spec, res=key[1], bits=key[2], backface=key[3])
+            self._views[key] = light_view(self.scene, spec, res=key[1], bits=key[2], backface=key[3], fit=fit)
         return self._views[key]
 
     def lit_mask(self, light_name: str) -> np.ndarray:

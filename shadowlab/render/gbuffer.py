@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from ..scene.build import transparent
 
+from .camera import Camera
+
 
 @dataclass
 class GBuffer:
@@ -60,7 +62,11 @@ def vec_numpy(v) -> np.ndarray:
 
 
 def pixel_uv(width: int, height: int, ss: int = 1):
-    """Film coordinates of pixel (sub-)centres in the G-buffer's point order, as numpy (N, 2)."""
+    """Film coordinates of pixel (sub-)centres in the G-buffer's point order, as numpy (N, 2).
+
+    >>> pixel_uv(2, 1).tolist()
+    [[0.25, 0.5], [0.75, 0.5]]
+    """
     j, i, k = np.meshgrid(np.arange(height), np.arange(width), np.arange(ss * ss), indexing="ij")
     sx, sy = k % ss, k // ss
     u = (i + (sx + 0.5) / ss) / width
@@ -95,11 +101,10 @@ def gbuffer(scene, ss: int = 1) -> GBuffer:
     ng = dr.select(dr.dot(si.n, ray.d) > 0, -si.n, si.n)
     n = si.sh_frame.n
     n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
-    cam = scene.spec.camera
-    cam_o = mi.Point3f(*cam.position)
-    fwd = mi.Vector3f(*[t - p for t, p in zip(cam.target, cam.position)])
+    cam = Camera.from_scene(scene)
+    cam_o = mi.Point3f(*[float(x) for x in cam.position])
     dist = dr.norm(si.p - cam_o)
-    zd = dr.dot(si.p - cam_o, dr.normalize(fwd))
+    zd = dr.dot(si.p - cam_o, mi.Vector3f(*[float(x) for x in cam.forward]))
     bsdf = si.bsdf(ray)
     alb = bsdf.eval_diffuse_reflectance(si, valid) if hasattr(bsdf, "eval_diffuse_reflectance") else mi.Color3f(0.5)
     shapes = scene.mi_scene.shapes_dr()

@@ -20,6 +20,20 @@ counts from the top (y = +1). Stored per texel, like a GPU depth buffer:
 * ``slope``: max(|∂d/∂x|, |∂d/∂y|) per texel of the caster's plane, for Direct3D's
   SlopeScaledDepthBias (computed from the hit's geometric normal, not by differencing).
 
+Fits (which part of the scene a map covers) are explicit frozen dataclasses, part of the map's
+identity (:meth:`shadowlab.render.frame.FrameContext.light_view` caches per fit):
+
+* :class:`SceneSphere` (the default): the table above, the whole scene;
+* :class:`FrustumSlice` (directional lights): the view-depth slice [z0, z1] of the camera's
+  frustum, light position p = c − λd from the slice's bounding sphere (or box) centre
+  [Buljan 2020, §2.2, §4.2], optionally snapped to whole texels (stable cascades);
+* :class:`TileRect`: a square of another fit's NDC [−1, 1]², i.e. one tile of a larger virtual
+  map at the same texel grid.
+
+A light may have several maps (one per fit), each :class:`Face` with its own near, far, scale,
+NDC shift and matrices (:attr:`Face.view_matrix`, :attr:`Face.proj_matrix`); depth conversions
+and :meth:`LightView.lookup` read the face's own values.
+
 Alpha-tested casters (003 §2.4, "Transparentni objekti"): a texel ray passes through texels of
 an ``alpha_texture`` whose alpha is below the shape's ``alpha_cutoff`` (the depth pass's
 ``discard``), so the map stores the next surface behind a leaf card's holes.
@@ -32,10 +46,90 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import InputError
 from ..scene import lights as lights_mod
 from ..scene.build import transparent
+from .camera import Camera
 
 MAX_HALF_FOV = math.radians(80.0)
+
+
+@dataclass(frozen=True)
+class SceneSphere:
+    """The whole scene: the light cameras of the module table (perspective fitted to the shapes'
+    boxes, orthographic to the scene's bounding sphere with p = c − 2R·d). The default fit."""
+
+
+@dataclass(frozen=True)
+class FrustumSlice:
+    """The camera-frustum slice between view depths ``z0`` < ``z1`` (m), for a directional light
+    [Buljan 2020, §2.2, §4.2, Code A.13].
+
+    * ``bound="sphere"``: the slice's bounding sphere (centre c = mean of its 8 corners, radius r
+      = the farthest corner, rounded up to 1/8 m as Code A.13 does), an orthographic square of half
+      size r: invariant under camera rotation;
+      ``bound="box"``: the square around the corners' light-space bounding rectangle (tighter,
+      changes as the camera turns).
+    * light position p = c − λd with λ = ``pull`` · r (Code A.13's DistanceFactor);
+    * ``snap=True`` moves p across the light direction to whole texels (the map is one texel
+      wider, half size r·N/(N − 1), so the slice stays inside), so a camera translation moves the
+      map's texel grid only by whole texels: stable cascaded shadow maps.
+    * depth range: from the scene's nearest caster toward the light (casters outside the slice
+      still shadow it) to the slice's far side.
+    """
+
+    z0: float
+    z1: float
+    pull: float = 2.0
+    snap: bool = False
+    bound: str = "sphere"
+
+    def __post_init__(self):
+        for k in ("z0", "z1", "pull"):
+            object.__setattr__(self, k, float(getattr(self, k)))
+        if not (math.isfinite(self.z0) and math.isfinite(self.z1) and 0 < self.z0 < self.z1):
+            raise InputError(f"FrustumSlice: expected view depths 0 < z0 < z1, got z0 = {self.z0}, z1 = {self.z1}")
+        if not self.pull > 0:
+            raise InputError(f"FrustumSlice: pull (λ in radii of the slice's sphere) must be > 0, got {self.pull}")
+        if self.bound not in ("sphere", "box"):
+            raise InputError(f"FrustumSlice: bound {self.bound!r}: expected 'sphere' or 'box'")
+        object.__setattr__(self, "snap", bool(self.snap))
+
+
+@dataclass(frozen=True)
+class TileRect:
+    """The square [x0, x1] × [y0, y1] of ``base``'s NDC [−1, 1]² (x right, y up) as a map of its
+    own: one tile of a virtual map. Rendered at ``res`` texels per side, its texel centres are
+    those of a ``base`` map of res · 2 / (x1 − x0) texels where the tile lies on that map's texel
+    grid, so its depths equal that larger map's texels there."""
+
+    x0: float
+    y0: float
+    x1: float
+    y1: float
+    base: object = SceneSphere()
+
+    def __post_init__(self):
+        for k in ("x0", "y0", "x1", "y1"):
+            object.__setattr__(self, k, float(getattr(self, k)))
+        if not (self.x0 < self.x1 and self.y0 < self.y1):
+            raise InputError(f"TileRect: expected x0 < x1 and y0 < y1, got {self.x0, self.y0, self.x1, self.y1}")
+        if abs((self.x1 - self.x0) - (self.y1 - self.y0)) > 1e-9 * (self.x1 - self.x0):
+            raise InputError(f"TileRect: a tile is square (its map has square texels); got "
+                             f"{self.x1 - self.x0} × {self.y1 - self.y0}")
+        if not isinstance(self.base, (SceneSphere, FrustumSlice, TileRect)):
+            raise InputError(f"TileRect: base {self.base!r} is not a fit (SceneSphere, FrustumSlice, TileRect)")
+
+    @property
+    def center(self) -> tuple:
+        return (0.5 * (self.x0 + self.x1), 0.5 * (self.y0 + self.y1))
+
+    @property
+    def half(self) -> float:
+        return 0.5 * (self.x1 - self.x0)
+
+
+FITS = (SceneSphere, FrustumSlice, TileRect)
 
 
 @dataclass(frozen=True)
@@ -46,12 +140,54 @@ class Face:
     scale: float        # tan(half fov) for perspective, half extent (world units) for orthographic
     near: float
     far: float
+    shift: tuple = (0.0, 0.0)  # NDC offset: ndc = (x/z or x)/scale − shift (a tile of a larger map)
 
     def __post_init__(self):  # plain Python floats: Dr.Jit constructors refuse numpy scalars
         object.__setattr__(self, "origin", tuple(float(x) for x in self.origin))
         object.__setattr__(self, "R", tuple(tuple(float(x) for x in row) for row in self.R))
         for k in ("scale", "near", "far"):
             object.__setattr__(self, k, float(getattr(self, k)))
+        object.__setattr__(self, "shift", tuple(float(x) for x in self.shift))
+
+    def ndc_depth(self, z):
+        """Light-space z -> NDC depth in [0, 1] (numpy or Dr.Jit) with this face's near / far."""
+        n, f = self.near, self.far
+        if self.ortho:
+            return (z - n) / (f - n)
+        return f / (f - n) * (1.0 - n / z)
+
+    def linear_depth(self, d):
+        """NDC depth -> light-space z (inverse of :meth:`ndc_depth`)."""
+        n, f = self.near, self.far
+        if self.ortho:
+            return n + d * (f - n)
+        return n / (1.0 - d * (f - n) / f)
+
+    @property
+    def view_matrix(self) -> np.ndarray:
+        """World -> light space (x right, y up, looking down +z; q = R (p − o)), 4×4."""
+        R = np.array(self.R)
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = R, -R @ np.array(self.origin)
+        return M
+
+    @property
+    def proj_matrix(self) -> np.ndarray:
+        """Light space -> clip, 4×4 (Direct3D depth range): ndc = clip[:3] / clip[3] gives NDC
+        x, y ∈ [−1, 1] over the face (y up, texel row 0 at y = +1) and z = :meth:`ndc_depth`."""
+        s, (sx, sy), n, f = self.scale, self.shift, self.near, self.far
+        if self.ortho:
+            return np.array([[1 / s, 0, 0, -sx], [0, 1 / s, 0, -sy],
+                             [0, 0, 1 / (f - n), -n / (f - n)], [0, 0, 0, 1]], np.float64)
+        return np.array([[1 / s, 0, -sx, 0], [0, 1 / s, -sy, 0],
+                         [0, 0, f / (f - n), -f * n / (f - n)], [0, 0, 1, 0]], np.float64)
+
+    @property
+    def world_to_clip(self) -> np.ndarray:
+        return self.proj_matrix @ self.view_matrix
+
+    def _key(self):
+        return (self.ortho, self.scale, self.near, self.far, self.shift)
 
 
 @dataclass(frozen=True)
@@ -61,22 +197,60 @@ class Projection:
     faces: tuple
     res: int
     cube: bool
+    fit: object = SceneSphere()
 
-    def ndc_depth(self, z):
-        """Light-space z -> NDC depth in [0, 1] (numpy or Dr.Jit)."""
-        f0 = self.faces[0]
-        n, f = f0.near, f0.far
-        if f0.ortho:
-            return (z - n) / (f - n)
-        return f / (f - n) * (1.0 - n / z)
+    @property
+    def uniform(self) -> bool:
+        """All faces share projection kind, near, far, scale and shift (every cube map does)."""
+        k = self.faces[0]._key()
+        return all(f._key() == k for f in self.faces[1:])
 
-    def linear_depth(self, d):
+    def ndc_depth(self, z, face=None):
+        """Light-space z -> NDC depth in [0, 1] (numpy or Dr.Jit) with the near / far of
+        ``face`` (an index, a per-point Dr.Jit UInt32 or numpy array of face indices; None: the
+        map's planes, which every face shares unless :attr:`uniform` is False)."""
+        return self._per_face(face, "ndc_depth", z)
+
+    def linear_depth(self, d, face=None):
         """NDC depth -> light-space z (inverse of :meth:`ndc_depth`)."""
-        f0 = self.faces[0]
-        n, f = f0.near, f0.far
-        if f0.ortho:
-            return n + d * (f - n)
-        return n / (1.0 - d * (f - n) / f)
+        return self._per_face(face, "linear_depth", d)
+
+    def _per_face(self, face, fn, x):
+        if face is None:
+            if not self.uniform:
+                raise ValueError("this map's faces have different near / far planes: pass face=")
+            return getattr(self.faces[0], fn)(x)
+        if isinstance(face, (int, np.integer)):
+            return getattr(self.faces[int(face)], fn)(x)
+        if self.uniform:
+            return getattr(self.faces[0], fn)(x)
+        n, f, o = (self.face_param(face, k) for k in ("near", "far", "ortho"))
+        if isinstance(face, np.ndarray):
+            o = o.astype(bool)
+            if fn == "ndc_depth":
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    return np.where(o, (x - n) / (f - n), f / (f - n) * (1.0 - n / x))
+            return np.where(o, n + x * (f - n), n / (1.0 - x * (f - n) / f))
+        import drjit as dr
+        if fn == "ndc_depth":
+            return dr.select(o > 0.5, (x - n) / (f - n), f / (f - n) * (1.0 - n / x))
+        return dr.select(o > 0.5, n + x * (f - n), n / (1.0 - x * (f - n) / f))
+
+    def face_param(self, face, name: str):
+        """Per-point value of a face parameter (``near``, ``far``, ``scale``, ``ortho``,
+        ``shift_x``, ``shift_y``) for face indices ``face`` (numpy array or Dr.Jit UInt32)."""
+        vals = [float(f.shift[0] if name == "shift_x" else f.shift[1] if name == "shift_y" else getattr(f, name))
+                for f in self.faces]
+        if isinstance(face, np.ndarray):
+            return np.asarray(vals, np.float64)[face]
+        import drjit as dr
+        import mitsuba as mi
+        return dr.gather(mi.Float, mi.Float(vals), mi.UInt32(face))
+
+    def matrices(self, face: int = 0) -> tuple:
+        """(world -> light view, light view -> clip) 4×4 matrices of ``face``."""
+        f = self.faces[face]
+        return f.view_matrix, f.proj_matrix
 
 
 def _frame(fwd, up):
@@ -104,9 +278,66 @@ def _near_far(light, o, scene):
     return near, far
 
 
-def projection(light, scene, res: int | None = None) -> Projection:
-    """The light camera of ``light`` in ``scene`` (see the module table)."""
+def projection(light, scene, res: int | None = None, fit=None) -> Projection:
+    """The light camera of ``light`` in ``scene`` for ``fit`` (None: :class:`SceneSphere`, the
+    module table)."""
     res = int(res or light.shadow_map)
+    fit = SceneSphere() if fit is None else fit
+    if isinstance(fit, SceneSphere):
+        return _scene_sphere(light, scene, res)
+    if isinstance(fit, FrustumSlice):
+        return _frustum_slice(light, scene, res, fit)
+    if isinstance(fit, TileRect):
+        return _tile(light, scene, res, fit)
+    raise InputError(f"light view fit {fit!r}: expected one of {', '.join(f.__name__ for f in FITS)}")
+
+
+def _frustum_slice(light, scene, res: int, fit: FrustumSlice) -> Projection:
+    """Orthographic map of the camera-frustum slice (see :class:`FrustumSlice`)."""
+    if light.kind != "directional":
+        raise InputError(f"light {light.name!r} is a {light.kind} light: a FrustumSlice fit (an orthographic map "
+                         "of a camera-frustum slice) is for directional lights; fit the others with SceneSphere() "
+                         "or a TileRect of it")
+    cam = Camera.from_scene(scene)
+    corners = cam.frustum_corners(fit.z0, fit.z1)
+    d = np.array(lights_mod.forward(light))
+    Rm = _frame(d, light.up)
+    c = corners.mean(axis=0)
+    r = float(np.max(np.linalg.norm(corners - c, axis=1)))
+    r = math.ceil(r * 8.0) / 8.0                     # Code A.13: radius in steps of 1/8
+    q = corners @ Rm.T                               # light-space (about the world origin)
+    if fit.bound == "sphere":
+        cx, cy, half = float(Rm[0] @ c), float(Rm[1] @ c), r
+    else:
+        lo, hi = q.min(axis=0), q.max(axis=0)
+        cx, cy = 0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])
+        half = 0.5 * float(max(hi[0] - lo[0], hi[1] - lo[1])) * 1.0001
+    if fit.snap:  # whole-texel steps across the light direction; the centre moves by at most half a
+        half *= res / (res - 1.0)  # texel, so the map grows by one texel to keep the slice inside
+        t = 2.0 * half / res
+        cx, cy = round(cx / t) * t, round(cy / t) * t
+    lam = fit.pull * r
+    cz = float(Rm[2] @ c) - lam                      # the light position's coordinate along d
+    o = Rm[0] * cx + Rm[1] * cy + Rm[2] * cz
+    zs = (_corners(scene) - o) @ Rm[2]               # casters toward the light still shadow the slice
+    zq = q[:, 2] - cz
+    margin = 1e-3 * scene.radius
+    near = min(float(zq.min()), float(zs.min())) - margin
+    far = float(zq.max()) + margin
+    return Projection((Face(tuple(o), tuple(map(tuple, Rm)), True, half, near, far),), res, False, fit)
+
+
+def _tile(light, scene, res: int, fit: TileRect) -> Projection:
+    """The square ``fit`` of its base fit's NDC as a map of its own (see :class:`TileRect`)."""
+    base = projection(light, scene, res, fit.base)
+    (xc, yc), h = fit.center, fit.half
+    faces = tuple(Face(f.origin, f.R, f.ortho, f.scale * h, f.near, f.far,
+                       ((f.shift[0] + xc) / h, (f.shift[1] + yc) / h)) for f in base.faces)
+    return Projection(faces, res, base.cube, fit)
+
+
+def _scene_sphere(light, scene, res: int) -> Projection:
+    """The :class:`SceneSphere` light camera (the module table)."""
     kind = light.kind
     if kind == "directional":
         d = np.array(lights_mod.forward(light))
@@ -166,6 +397,11 @@ class LightView:
         return self.proj.res
 
     @property
+    def fit(self):
+        """The fit this map was made for (:class:`SceneSphere`, :class:`FrustumSlice`, :class:`TileRect`)."""
+        return self.proj.fit
+
+    @property
     def nfaces(self):
         return len(self.proj.faces)
 
@@ -214,17 +450,28 @@ class LightView:
         qx, qy, qz = dr.dot(rel, row[0]), dr.dot(rel, row[1]), dr.dot(rel, row[2])
         f0 = faces[0]
         N = self.res
+        uniform = self.proj.uniform
+        if uniform:  # one set of planes for the map (every cube map): plain Python floats
+            s, near, far, (sx, sy) = f0.scale, f0.near, f0.far, f0.shift
+            shifted = f0.shift != (0.0, 0.0)
+        else:        # each face its own: gathered per point
+            if any(f.ortho != f0.ortho for f in faces):
+                raise ValueError("a light view mixes orthographic and perspective faces")
+            s, near, far, sx, sy = (self.proj.face_param(face, k) for k in ("scale", "near", "far", "shift_x", "shift_y"))
+            shifted = True
         if f0.ortho:
-            x, y = qx / f0.scale, qy / f0.scale
-            texel = mi.Float(2.0 * f0.scale / N)
+            x, y = qx / s, qy / s
+            texel = mi.Float(2.0 * s / N)
         else:
             inv = dr.rcp(dr.maximum(qz, 1e-12))
-            x, y = qx * inv / f0.scale, qy * inv / f0.scale
-            texel = 2.0 * f0.scale * qz / N
+            x, y = qx * inv / s, qy * inv / s
+            texel = 2.0 * s * qz / N
+        if shifted:
+            x, y = x - sx, y - sy
         u = (x + 1.0) * 0.5 * N
         v = (1.0 - y) * 0.5 * N
-        inside = (qz > f0.near) & (qz < f0.far) & (dr.abs(x) <= 1.0) & (dr.abs(y) <= 1.0)
-        d = self.proj.ndc_depth(dr.maximum(qz, 1e-12) if not f0.ortho else qz)
+        inside = (qz > near) & (qz < far) & (dr.abs(x) <= 1.0) & (dr.abs(y) <= 1.0)
+        d = self.proj.ndc_depth(dr.maximum(qz, 1e-12) if not f0.ortho else qz, face=None if uniform else face)
         return {"face": face, "u": u, "v": v, "z": qz, "d": d, "inside": inside, "texel": texel}
 
 
@@ -237,12 +484,13 @@ def texel_rays(proj: Projection):
     os_, ds_ = [], []
     for f in proj.faces:
         R = np.array(f.R)
+        Xs, Ys = (X, Y) if f.shift == (0.0, 0.0) else (X + f.shift[0], Y + f.shift[1])
         if f.ortho:
-            local_o = np.stack([X * f.scale, Y * f.scale, np.zeros_like(X)], -1).reshape(-1, 3)
+            local_o = np.stack([Xs * f.scale, Ys * f.scale, np.zeros_like(X)], -1).reshape(-1, 3)
             o = np.array(f.origin) + local_o @ R
             d = np.broadcast_to(R[2], o.shape)
         else:
-            local_d = np.stack([X * f.scale, Y * f.scale, np.ones_like(X)], -1).reshape(-1, 3)
+            local_d = np.stack([Xs * f.scale, Ys * f.scale, np.ones_like(X)], -1).reshape(-1, 3)
             d = local_d @ R
             d = d / np.linalg.norm(d, axis=1, keepdims=True)
             o = np.broadcast_to(np.array(f.origin), d.shape)
@@ -251,23 +499,25 @@ def texel_rays(proj: Projection):
     return np.concatenate(os_), np.concatenate(ds_)
 
 
-def light_view(scene, light, res: int | None = None, bits: int | None = None, backface: bool = False) -> LightView:
+def light_view(scene, light, res: int | None = None, bits: int | None = None, backface: bool = False,
+               fit=None) -> LightView:
     """Render ``light``'s depth map by ray casting (module docstring has the conventions).
 
     ``backface=True`` keeps the first surface facing away from the light (front-face culling,
     003_b5589b67cce60746.txt §2.3). The light's own emitter shape never occludes.
+    ``fit``: which part of the scene the map covers (None: :class:`SceneSphere`).
     """
     import drjit as dr
     import mitsuba as mi
 
-    proj = projection(light, scene, res)
+    proj = projection(light, scene, res, fit)
     bits = int(bits or light.depth_bits)
     N, F = proj.res, len(proj.faces)
     o_np, d_np = texel_rays(proj)
     # start past the light's own surface: spheres at their radius, planar lights just in front
     start = light.radius * 1.001 if light.kind in ("sphere", "point") else 1e-5 * scene.radius
-    if proj.faces[0].ortho:
-        start = 0.0
+    if proj.faces[0].ortho:  # orthographic rays start on the near plane or at the light's position
+        start = min(0.0, proj.faces[0].near)
     o_np = o_np + d_np * start
     ray = mi.Ray3f(mi.Point3f(*[o_np[:, k].astype(np.float32) for k in range(3)]),
                    mi.Vector3f(*[d_np[:, k].astype(np.float32) for k in range(3)]))
@@ -287,19 +537,25 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     rel = p - origins
     q = np.einsum("mij,mj->mi", Rs, rel)
     nl = np.einsum("mij,mj->mi", Rs, ng)
-    z = np.where(h, q[:, 2], f0.far)
-    n_, f_ = f0.near, f0.far
+    if proj.uniform:  # the map's own planes (shared by every face)
+        n_, f_, sc, fi = f0.near, f0.far, f0.scale, None
+    else:             # each face its own planes
+        if any(f.ortho != f0.ortho for f in proj.faces):
+            raise ValueError("a light view mixes orthographic and perspective faces")
+        n_, f_, sc = (proj.face_param(face_idx, k) for k in ("near", "far", "scale"))
+        fi = face_idx
+    z = np.where(h, q[:, 2], f_)
     with np.errstate(divide="ignore", invalid="ignore"):
         if f0.ortho:
-            slope = 2.0 / N * f0.scale * np.maximum(np.abs(nl[:, 0]), np.abs(nl[:, 1])) / (np.abs(nl[:, 2]) * (f_ - n_))
+            slope = 2.0 / N * sc * np.maximum(np.abs(nl[:, 0]), np.abs(nl[:, 1])) / (np.abs(nl[:, 2]) * (f_ - n_))
         else:
             B = f_ * n_ / (f_ - n_)
             D = np.abs(np.einsum("mi,mi->m", nl, q))
-            slope = 2.0 / N * B * f0.scale * np.maximum(np.abs(nl[:, 0]), np.abs(nl[:, 1])) / D
+            slope = 2.0 / N * B * sc * np.maximum(np.abs(nl[:, 0]), np.abs(nl[:, 1])) / D
     slope = np.where(h & np.isfinite(slope), np.minimum(slope, 1.0), 0.0)
-    d = np.where(h, proj.ndc_depth(np.clip(z, n_, f_)), 1.0)
+    d = np.where(h, proj.ndc_depth(np.clip(z, n_, f_), face=fi), 1.0)
     dq = quantise(d, bits)
-    zq = np.where(h, proj.linear_depth(dq.astype(np.float64)), f_)
+    zq = np.where(h, proj.linear_depth(dq.astype(np.float64), face=fi), f_)
     shp = (F, N, N)
     return LightView(light=light, proj=proj, bits=bits, backface=backface, depth=dq.reshape(shp),
                      z=zq.astype(np.float32).reshape(shp), slope=slope.astype(np.float32).reshape(shp),

@@ -5,7 +5,8 @@ The format (documented in README.md, "Scene format"):
 ```toml
 name = "contact"
 description = "..."
-[camera]      position, target, up, fov (degrees, horizontal), resolution = [W, H]
+[camera]      position, target, up, fov (degrees, horizontal), resolution = [W, H],
+              near, far (clip planes, m; default CAMERA_NEAR / CAMERA_FAR)
 [[lights]]    name, kind = rect|disk|sphere|spot|point|directional, colour and power, size ...
 [[shapes]]    name, type = rectangle|disk|cube|sphere|cylinder|ply|obj, albedo, transform,
               alpha_texture = "textures/leaf.png", alpha_cutoff = 0.5 (alpha-tested casters)
@@ -40,6 +41,10 @@ from .textures import AlphaTextureError, read_alpha
 LIGHT_KINDS = ("rect", "disk", "sphere", "spot", "point", "directional")
 SHAPE_TYPES = ("rectangle", "disk", "cube", "sphere", "cylinder", "ply", "obj")
 DEPTH_BITS = (16, 24, 32)
+#: default camera clip planes (m): the ground truth's Mitsuba sensor has always used these, so a
+#: scene without ``camera.near`` / ``camera.far`` renders, exports and hashes as before they existed
+CAMERA_NEAR = 1e-3
+CAMERA_FAR = 1e5
 
 
 @dataclass(frozen=True)
@@ -49,6 +54,16 @@ class Camera:
     up: tuple = (0.0, 1.0, 0.0)
     fov: float = 40.0
     resolution: tuple = (128, 128)
+    near: float | None = None    # clip planes (m); None = CAMERA_NEAR / CAMERA_FAR
+    far: float | None = None
+
+    @property
+    def near_clip(self) -> float:
+        return CAMERA_NEAR if self.near is None else float(self.near)
+
+    @property
+    def far_clip(self) -> float:
+        return CAMERA_FAR if self.far is None else float(self.far)
 
 
 @dataclass(frozen=True)
@@ -140,6 +155,9 @@ class SceneSpec:
         """SHA-256 of the scene's content (not its path); a reference stores it."""
         d = asdict(self)
         d.pop("source")
+        for k in ("near", "far"):  # absent unless set: scenes without them hash as before the keys existed
+            if d["camera"][k] is None:
+                d["camera"].pop(k)
         if not d["sdf"]:  # absent unless used: scenes without [[sdf]] hash as before the key existed
             d.pop("sdf")
         for s in d["shapes"]:
@@ -188,8 +206,19 @@ def parse(data: dict, path: str = "<scene>") -> SceneSpec:
     if (not isinstance(res, list) or len(res) != 2 or
             any(isinstance(x, bool) or not isinstance(x, int) or x < 1 or x > 8192 for x in res)):
         c.fail("resolution", "[width, height] with integers in 1..8192", res)
+    clip = {}
+    for k in ("near", "far"):
+        if c.has(k):
+            clip[k] = c.num(k)
+            if clip[k] <= 0:
+                c.fail(k, "a positive distance in metres (a clip plane in front of the camera)", clip[k])
+    near, far = clip.get("near", CAMERA_NEAR), clip.get("far", CAMERA_FAR)
+    if clip and near >= far:
+        c.fail("far" if "far" in clip else "near",
+               f"camera.near < camera.far (near {near:g}, far {far:g}; the defaults are near = {CAMERA_NEAR:g}, "
+               f"far = {CAMERA_FAR:g})", clip.get("far", clip.get("near")))
     camera = Camera(position=c.vec("position"), target=c.vec("target"), up=c.vec("up", default=(0, 1, 0)),
-                    fov=c.num("fov", default=40.0, lo=1.0, hi=170.0), resolution=tuple(res))
+                    fov=c.num("fov", default=40.0, lo=1.0, hi=170.0), resolution=tuple(res), **clip)
     if _norm([a - b for a, b in zip(camera.position, camera.target)]) == 0:
         c.fail("target", "a point different from camera.position", list(camera.target))
 
