@@ -37,7 +37,7 @@ def test_rays_match_mitsuba_sensor_at_pixel_centres(scene):
     assert np.abs(np.asarray(ray.d.numpy()).T - d).max() < 1e-5
     assert np.abs(np.asarray(ray.o.numpy()).T - o).max() < 1e-5
     # the G-buffer's own order is pixel_uv's
-    from shadowlab.render.gbuffer import pixel_uv
+    from shadowlab.render.camera import pixel_uv
     assert np.array_equal(cam.pixel_uv(2), pixel_uv(64, 48, 2))
     from shadowlab.exchange.mesh import matrix_of
     assert np.abs(matrix_of(scene.sensor.world_transform()) - cam.camera_to_world).max() < 1e-6

@@ -62,6 +62,20 @@ def _unit(v) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
+def pixel_uv(width: int, height: int, ss: int = 1) -> np.ndarray:
+    """Film coordinates of pixel (sub-)centres in the G-buffer's point order, as numpy (N, 2):
+    point ``k`` is pixel ``((k // s²) % W, (k // s²) // W)``, sub-pixel ``k % s²``.
+
+    >>> pixel_uv(2, 1).tolist()
+    [[0.25, 0.5], [0.75, 0.5]]
+    """
+    j, i, k = np.meshgrid(np.arange(height), np.arange(width), np.arange(ss * ss), indexing="ij")
+    sx, sy = k % ss, k // ss
+    u = (i + (sx + 0.5) / ss) / width
+    v = (j + (sy + 0.5) / ss) / height
+    return np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64)
+
+
 class Camera:
     """A perspective pinhole camera (see the module docstring for every convention).
 
@@ -211,14 +225,14 @@ class Camera:
 
     # -- pixels, rays, points ----------------------------------------------------------------
     def pixel_uv(self, ss: int = 1) -> np.ndarray:
-        """Film uv of pixel (sub-)centres in the G-buffer's point order, (N, 2) (see
-        :func:`shadowlab.render.gbuffer.pixel_uv`)."""
-        W, H = self.width, self.height
-        j, i, k = np.meshgrid(np.arange(H), np.arange(W), np.arange(ss * ss), indexing="ij")
-        sx, sy = k % ss, k // ss
-        u = (i + (sx + 0.5) / ss) / W
-        v = (j + (sy + 0.5) / ss) / H
-        return np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64)
+        """Film uv of pixel (sub-)centres in the G-buffer's point order, (N, 2) (:func:`pixel_uv`)."""
+        return pixel_uv(self.width, self.height, ss)
+
+    def pixel_tan_alpha(self, ss: int = 1) -> float:
+        """tan of the half-angle of the cone through a (sub-)pixel: half its diagonal at unit
+        distance, ``√2/2 · 2·tan(fov/2) / (W·ss)`` (square pixels). Off-axis the pixel's footprint
+        across the ray is smaller, so the cone still covers it [Bán 2019, §2.9]."""
+        return math.sqrt(0.5) * 2.0 * self.tan_x / (self.width * ss)
 
     def film_directions(self, uv) -> np.ndarray:
         """Unit world directions through film points ``uv`` (N, 2)."""

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from ..scene.build import transparent
 
-from .camera import Camera
+from .camera import Camera, pixel_uv
 
 
 @dataclass
@@ -59,19 +59,6 @@ class GBuffer:
 def vec_numpy(v) -> np.ndarray:
     """A Dr.Jit 3-vector array (which ``.numpy()`` gives as (3, N)) -> numpy (N, 3)."""
     return np.asarray(v.numpy()).T
-
-
-def pixel_uv(width: int, height: int, ss: int = 1):
-    """Film coordinates of pixel (sub-)centres in the G-buffer's point order, as numpy (N, 2).
-
-    >>> pixel_uv(2, 1).tolist()
-    [[0.25, 0.5], [0.75, 0.5]]
-    """
-    j, i, k = np.meshgrid(np.arange(height), np.arange(width), np.arange(ss * ss), indexing="ij")
-    sx, sy = k % ss, k // ss
-    u = (i + (sx + 0.5) / ss) / width
-    v = (j + (sy + 0.5) / ss) / height
-    return np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64)
 
 
 def gbuffer(scene, ss: int = 1) -> GBuffer:

@@ -6,7 +6,7 @@ Dr.Jit: no numpy round trip between passes.
 
 Layout. Values are flat Dr.Jit arrays in the **G-buffer's point order** (what techniques compute
 per shading point): point k is pixel ((k // s²) % W, (k // s²) // W), sub-pixel k % s²
-(:func:`shadowlab.render.gbuffer.pixel_uv`). The screen's grid is the sub-pixel grid:
+(:func:`shadowlab.render.camera.pixel_uv`). The screen's grid is the sub-pixel grid:
 ``width`` = W·s, ``height`` = H·s columns and rows, grid pixel (X, Y) = (x·s + k % s,
 y·s + k // s), its centre at continuous grid coordinates (X + ½, Y + ½) (y down from the top
 row); with s = 1 it is the image. :meth:`Screen.index` maps grid coordinates to points.

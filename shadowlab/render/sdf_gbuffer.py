@@ -1,7 +1,7 @@
 """The cone-traced G-buffer of an SDF scene [Bán 2019, §2.9] and its unshadowed light.
 
 Camera rays are the same as the Mitsuba G-buffer's (``sensor.sample_ray`` at pixel (sub-)centres,
-:func:`shadowlab.render.gbuffer.pixel_uv` order), each traced as the *pixel-covering cone* of
+:func:`shadowlab.render.camera.pixel_uv` order), each traced as the *pixel-covering cone* of
 [Bán 2019, §2.9]: apex at the camera, half-angle ``α`` with ``tanα`` = half the diagonal of a (sub-)pixel
 at unit distance. :func:`shadowlab.sdf.trace.cone_trace` stops at the *surface point* ``p``: the
 ball of radius ``f(p)`` around it (``radius``) does not cross the surface and covers the pixel, so
@@ -25,13 +25,13 @@ cannot see (:func:`shadowlab.render.frame.make_frame` chooses).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..sdf.trace import cone_trace, sphere_trace
-from .gbuffer import GBuffer, pixel_uv, vec_numpy
+from .camera import Camera
+from .gbuffer import GBuffer, vec_numpy
 from .shading import _hash32
 
 
@@ -49,11 +49,8 @@ class SDFGBuffer(GBuffer):
 
 
 def pixel_tan_alpha(camera, ss: int = 1) -> float:
-    """tan of the half-angle of the cone through a (sub-)pixel: half its diagonal at unit
-    distance, ``√2/2 · 2·tan(fov/2) / (W·ss)`` (horizontal fov, square pixels). Off-axis the
-    pixel's footprint across the ray is smaller, so the cone still covers it."""
-    W = camera.resolution[0]
-    return math.sqrt(0.5) * 2.0 * math.tan(math.radians(camera.fov) / 2.0) / (W * ss)
+    """The pixel cone's tan(half-angle) for a scene's camera spec: :meth:`Camera.pixel_tan_alpha`."""
+    return Camera.from_spec(camera).pixel_tan_alpha(ss)
 
 
 def cone_gbuffer(scene, sdf, ss: int = 1, *, eps: float = 1e-4, i_max: int = 512) -> SDFGBuffer:
@@ -62,13 +59,12 @@ def cone_gbuffer(scene, sdf, ss: int = 1, *, eps: float = 1e-4, i_max: int = 512
     import mitsuba as mi
 
     W, H = scene.resolution
-    uv = pixel_uv(W, H, ss)
+    cam = Camera.from_scene(scene)
+    uv = cam.pixel_uv(ss)
     film_uv = mi.Point2f(uv[:, 0].astype(np.float32), uv[:, 1].astype(np.float32))
     ray, _ = scene.sensor.sample_ray(0.0, 0.5, film_uv, mi.Point2f(0.5))
-    cam = scene.spec.camera
-    cam_o = np.asarray(cam.position, dtype=np.float64)
-    t_max = float(np.linalg.norm(cam_o - np.asarray(scene.center)) + scene.radius) * 1.01 + 1e-3
-    ta = pixel_tan_alpha(cam, ss)
+    t_max = float(np.linalg.norm(cam.position - np.asarray(scene.center)) + scene.radius) * 1.01 + 1e-3
+    ta = cam.pixel_tan_alpha(ss)
     o, d = mi.Vector3f(ray.o), mi.Vector3f(ray.d)
     hit, t, its = cone_trace(sdf, o, d, t_max, ta, eps=eps, i_max=i_max)
     p = o + d * t
@@ -93,9 +89,8 @@ def cone_gbuffer(scene, sdf, ss: int = 1, *, eps: float = 1e-4, i_max: int = 512
         best = dr.select(closer, dk, best)
         sid = dr.select(closer, k, sid)
         alb = dr.select(closer, mi.Color3f(*prim.albedo), alb)
-    cam_p = mi.Vector3f(*cam.position)
-    fwd = np.asarray(cam.target, dtype=np.float64) - cam_o
-    fwd = mi.Vector3f(*(float(x) for x in fwd / np.linalg.norm(fwd)))
+    cam_p = mi.Vector3f(*(float(x) for x in cam.position))
+    fwd = mi.Vector3f(*(float(x) for x in cam.forward))
     dist = dr.norm(p - cam_p)
     zd = dr.dot(p - cam_p, fwd)
     si = dr.zeros(mi.SurfaceInteraction3f, dr.width(p))
