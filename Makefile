@@ -18,8 +18,8 @@ $(VENV)/.installed: pyproject.toml
 
 # Dr.Jit's LLVM backend needs libLLVM >= 16 (Mitsuba 3.9 kernels abort on 14/15).
 llvm: venv
-	@if $(PY) -c "import sys; from shadowlab.backend import find_libllvm; sys.exit(0 if find_libllvm() else 1)"; then \
-		echo "libLLVM: $$($(PY) -c 'from shadowlab.backend import find_libllvm; print(find_libllvm())')"; \
+	@if $(PY) -c "import sys; from shadowlab.libllvm import find_libllvm; sys.exit(0 if find_libllvm() else 1)"; then \
+		echo "libLLVM: $$($(PY) -c 'from shadowlab.libllvm import find_libllvm; print(find_libllvm())')"; \
 	elif [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
 		echo "installing $(LLVM_PKG) for Dr.Jit's LLVM backend"; \
 		DEBIAN_FRONTEND=noninteractive apt-get install -y -q $(LLVM_PKG) >/dev/null 2>&1 || \

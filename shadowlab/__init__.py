@@ -5,3 +5,7 @@ ground truth (area lights, direct illumination only). See README.md and docs/ARC
 """
 
 __version__ = "0.1.0"
+
+from .libllvm import point_drjit_at_libllvm
+
+point_drjit_at_libllvm()  # before any module of the package imports Dr.Jit, which reads it on import

@@ -2,8 +2,9 @@
 
 Mitsuba 3.9 kernels abort inside libLLVM 14/15 ("LLVM ERROR: Cannot select ... fminimum"),
 which would kill the Python process. So before the first kernel runs in this process we
-(1) point Dr.Jit at the newest libLLVM >= 16 we can find unless ``DRJIT_LIBLLVM_PATH`` is set,
-and (2) run a real Mitsuba kernel in a *subprocess*: if it dies we raise
+(1) point Dr.Jit at the newest libLLVM >= 16 we can find unless ``DRJIT_LIBLLVM_PATH`` is set
+(:mod:`shadowlab.libllvm`, called by the package's ``__init__`` before anything imports Dr.Jit,
+which reads the variable on import), and (2) run a real Mitsuba kernel in a *subprocess*: if it dies we raise
 :class:`EnvironmentProblem` (exit 3) naming the library and the fix instead of crashing.
 """
 
@@ -11,24 +12,24 @@ from __future__ import annotations
 
 import glob
 import hashlib
+import importlib.metadata as md
 import json
 import os
-import re
+import platform
 import subprocess
 import sys
 from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
+
 from .errors import EnvironmentProblem, InputError
+from .libllvm import _LIB_DIRS, FIX, MIN_LLVM, find_libllvm, llvm_version
+
+__all__ = ["init", "probe", "machine_info", "find_libllvm", "llvm_version", "DEFAULT_VARIANT", "SUPPORTED_VARIANTS"]
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
-MIN_LLVM = 16
-FIX = ("install a libLLVM >= 16: on Debian/Ubuntu run `sudo apt-get install libllvm19` "
-       "(or `make setup`, which does it), or point DRJIT_LIBLLVM_PATH at a libLLVM.so >= 16")
-
-_LIB_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib",
-             "/usr/local/lib", "/opt/homebrew/opt/llvm/lib", "/usr/local/opt/llvm/lib")
-
 _state: dict = {"variant": None}
 
 # A kernel that exercises what broke on libLLVM 15: a ray cast plus min/max reductions.
@@ -44,25 +45,7 @@ print('ok', dr.min(v).numpy())
 """
 
 
-def llvm_version(path: str) -> int | None:
-    """Major version encoded in a libLLVM file name, e.g. ``libLLVM-19.so`` -> 19."""
-    m = re.search(r"libLLVM[-.]?(?:so\.)?(\d+)", os.path.basename(path))
-    return int(m.group(1)) if m else None
-
-
-def find_libllvm(min_version: int = MIN_LLVM) -> str | None:
-    """Newest libLLVM >= ``min_version`` in the usual library directories, or None."""
-    found = []
-    for d in _LIB_DIRS:
-        for p in glob.glob(os.path.join(d, "libLLVM*.so*")) + glob.glob(os.path.join(d, "libLLVM*.dylib")):
-            v = llvm_version(p)
-            if v is not None and v >= min_version:
-                found.append((v, len(p), p))
-    return sorted(found)[-1][2] if found else None
-
-
 def _cache_file(variant: str, lib: str | None) -> Path:
-    import importlib.metadata as md
     try:
         versions = md.version("mitsuba") + md.version("drjit")
     except md.PackageNotFoundError:
@@ -103,12 +86,6 @@ def init(variant: str | None = None, threads: int | None = None, check: bool = T
         return variant
     if variant not in SUPPORTED_VARIANTS:
         raise InputError(f"unknown variant {variant!r}; choose one of {', '.join(SUPPORTED_VARIANTS)}")
-    try:
-        import mitsuba  # noqa: F401
-        import drjit  # noqa: F401
-    except ImportError as e:  # pragma: no cover - depends on the machine
-        raise EnvironmentProblem(f"cannot import {e.name}: run `make setup` (or "
-                                 "`pip install -e .`) to install shadowlab's dependencies") from e
 
     lib = None
     if variant.startswith("llvm"):
@@ -139,8 +116,6 @@ def init(variant: str | None = None, threads: int | None = None, check: bool = T
                     "Fix: use --variant llvm_ad_rgb or install a CUDA driver")
             cache.parent.mkdir(parents=True, exist_ok=True)
             cache.write_text(json.dumps({"variant": variant, "lib": lib}))
-    import drjit as dr
-    import mitsuba as mi
     mi.set_variant(variant)
     if threads:
         dr.set_thread_count(int(threads))
@@ -150,8 +125,6 @@ def init(variant: str | None = None, threads: int | None = None, check: bool = T
 
 def machine_info() -> dict:
     """What a benchmark or reference ran on: CPU model, cores, library versions."""
-    import platform
-    import importlib.metadata as md
     cpu = platform.processor()
     try:
         for line in open("/proc/cpuinfo"):

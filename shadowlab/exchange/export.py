@@ -41,6 +41,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import mitsuba as mi
 
 from .. import __version__, backend
 from ..errors import InputError, SceneError
@@ -181,7 +182,6 @@ def light_info(light, mitsuba_dict: dict, ply: str | None) -> dict:
     elif "position" in d:  # delta point light
         to_world = _translate(d["position"])
     else:  # delta directional: a frame whose +z is the direction
-        import mitsuba as mi
         fwd = lights_mod.forward(light)
         up = lights_mod._up_for(fwd, light.up)
         to_world = matrix_of(mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=list(fwd), up=list(up)))
@@ -332,7 +332,6 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
         raise InputError(f"export output {out} exists and is not empty; pass --force to replace the exported "
                          f"files in it ({', '.join(EXPORT_FILES)}, meshes/, textures/) or choose another --out")
     backend.init()
-    import mitsuba as mi
     sc = build(spec)
 
     out.parent.mkdir(parents=True, exist_ok=True)

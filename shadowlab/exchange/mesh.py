@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import mitsuba as mi
 
 from ..errors import SceneError
 
@@ -113,7 +114,6 @@ def _oriented(P, N, F):
 
 def _mitsuba_mesh(d: dict):
     """Load one mesh shape (cube / ply / obj) with Mitsuba and read its world-space buffers."""
-    import mitsuba as mi
     dd = {k: v for k, v in d.items() if k not in ("bsdf", "emitter")}
     try:
         mesh = mi.load_dict(dd)

@@ -22,6 +22,10 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from pathlib import Path
+import argparse
+import datetime
+import drjit as dr
 from .. import backend
 from ..io.jsonio import write_json_atomic
 from ..techniques.pcss import scene_light_size
@@ -39,7 +43,6 @@ def _fit(frame, truth, sc, method: str, start: float):
 
 
 def scene_goals(name: str, starts=STARTS, grid_exp: int = GRID_EXP) -> dict:
-    import drjit as dr
     sc, truth, meta, frame = R.prepare(name)
     s = float(np.mean([scene_light_size(l) for l in frame.lights]))
     fits, lo, hi = [], None, None
@@ -133,9 +136,6 @@ def markdown(res: dict) -> list[str]:
 
 
 def main(argv=None):
-    import argparse
-    import datetime
-    from pathlib import Path
     ap = argparse.ArgumentParser(description="Measure the fitting goals (Adam vs grid search).")
     ap.add_argument("--out", default="reports/bench")
     ap.add_argument("--quick", action="store_true")

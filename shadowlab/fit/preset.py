@@ -25,6 +25,7 @@ import os
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+import tomllib
 
 from ..errors import InputError
 from ..techniques import base
@@ -51,7 +52,6 @@ def _parse_text(path: Path, text: str) -> dict:
             return json.loads(text)
         except json.JSONDecodeError as e:
             raise InputError(f"preset {path}: not valid JSON ({e})") from None
-    import tomllib
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:

@@ -19,6 +19,8 @@ from pathlib import Path
 from urllib.parse import quote
 
 import numpy as np
+import re
+import textwrap
 
 from ..errors import InputError
 from ..io.png import encode_png
@@ -70,7 +72,6 @@ def _fmt(v, digits=4) -> str:
 
 
 def _slug(s: str) -> str:
-    import re
     return (re.sub(r"[^A-Za-z0-9_-]+", "-", s).strip("-") or "x")[:40]
 
 
@@ -136,7 +137,6 @@ def plot_history(r: dict, path: Path, title: str):
     if pos.size and pos.max() / max(pos.min(), 1e-12) > 20:
         a1.set_yscale("log")
     a1.set_ylabel(f"loss ({r['loss']['name']})")
-    import textwrap
     a1.set_title("\n".join(textwrap.wrap(title, 95)), fontsize=9)
     a1.legend(fontsize=8, loc="upper right")
     a1.grid(alpha=0.3)

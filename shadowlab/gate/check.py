@@ -7,6 +7,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
+import inspect
 
 from ..errors import InputError
 from ..io.exr import check_finite
@@ -92,7 +93,6 @@ class Target:
 def mitsuba_dof() -> int:
     """Degrees of freedom of a stored ``mitsuba.var``: the variance of the mean over the passes of
     :func:`~shadowlab.reference.truth.mitsuba_render` (its default ``passes``, minus 1)."""
-    import inspect
     return int(inspect.signature(mitsuba_render).parameters["passes"].default) - 1
 
 

@@ -42,6 +42,7 @@ import re
 from pathlib import Path
 
 import pytest
+import numpy as np
 from ..errors import InputError
 from ..io.exr import read_exr, split_rgb, write_exr
 from ..io.jsonio import read_json, write_json_atomic
@@ -133,7 +134,6 @@ class ShadowlabGate:
 
     def __call__(self, image, name: str, *, variance=None, target: str | None = None, valid=None, penumbra=None,
                  stamp: str | None = None, **thresholds):
-        import numpy as np
 
         exr, meta_path = self.paths(name)
         th = self._split(dict(thresholds))

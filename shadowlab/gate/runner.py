@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import drjit as dr
 
 from .. import backend
 from ..errors import InputError
@@ -155,7 +156,6 @@ class _Context:
 
 
 def _technique_candidate(ctx: _Context, g: GateSpec):
-    import drjit as dr
     frame = ctx.frame(g)
     t = tbase.get(g.candidate.technique)
     params = t.resolve(g.candidate.params)

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from shadowlab.errors import InputError
+import OpenEXR
 
 __all__ = ["write_exr", "read_exr", "rgb_channels", "stack_rgb", "split_rgb", "check_finite"]
 
@@ -31,8 +32,6 @@ _RGB = ("R", "G", "B")
 
 
 def _openexr():
-    import OpenEXR  # local import: the module is only needed when files are touched
-
     return OpenEXR
 
 

@@ -30,6 +30,8 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import drjit as dr
+import mitsuba as mi
 
 from ..render.frame import FrameContext
 from ..render.gbuffer import vec_numpy
@@ -69,8 +71,6 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
 
     ``progress(n)`` is called with the number of shadow rays of each round.
     """
-    import drjit as dr
-    import mitsuba as mi
 
     scene, gb = frame.scene, frame.gbuffer
     spec = scene.spec.light(light_name)
@@ -149,8 +149,6 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
 def mitsuba_render(scene, spp: int = 256, passes: int = 4, seed: int = 0):
     """Mitsuba's own ``direct`` integrator image and the variance of its mean over ``passes``
     independent renders of spp/passes samples each."""
-    import drjit as dr
-    import mitsuba as mi
     integrator = mi.load_dict({"type": "direct"})
     per = max(1, spp // passes)
     imgs = [np.asarray(mi.render(scene.mi_scene, spp=per, seed=seed * 1000 + i, integrator=integrator))
@@ -164,7 +162,6 @@ def mitsuba_render(scene, spp: int = 256, passes: int = 4, seed: int = 0):
 def render_truth(frame: FrameContext, *, k: int = 8, target_se: float = 0.005, max_rounds: int = 64,
                  seed: int = 0, spp: int = 256, progress=None) -> Truth:
     """The whole ground truth of a frame: every light's visibility, Σ U·V and mi.render."""
-    import drjit as dr
     gb = frame.gbuffer
     t0 = time.perf_counter()
     lights, U = {}, {}

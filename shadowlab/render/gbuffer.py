@@ -15,6 +15,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import drjit as dr
+import mitsuba as mi
 from ..scene.build import transparent
 
 from .camera import Camera, pixel_uv
@@ -71,8 +73,6 @@ def gbuffer(scene, ss: int = 1) -> GBuffer:
     >>> bool(gb.mask.any())
     True
     """
-    import drjit as dr
-    import mitsuba as mi
 
     W, H = scene.resolution
     uv = pixel_uv(W, H, ss)
@@ -113,13 +113,11 @@ def gbuffer(scene, ss: int = 1) -> GBuffer:
 MAX_ALPHA_LAYERS = 64  # transparent texels a camera ray may pass before it stops (then: a miss)
 
 
-@__import__("drjit").syntax
+@dr.syntax
 def _through_alpha(mi_scene, si, ray):
     """Continue camera rays through transparent texels of alpha-tested shapes (a symbolic loop,
     only for scenes that have them). ``si.t`` stays the distance from the camera ray's origin; a
     ray still on a transparent texel after MAX_ALPHA_LAYERS surfaces counts as a miss."""
-    import drjit as dr
-    import mitsuba as mi
     r = mi.Ray3f(ray)
     i = mi.UInt32(0)
     through = transparent(si)

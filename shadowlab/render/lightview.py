@@ -45,6 +45,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import drjit as dr
+import mitsuba as mi
 
 from ..errors import InputError
 from ..scene import lights as lights_mod
@@ -231,7 +233,6 @@ class Projection:
                 with np.errstate(divide="ignore", invalid="ignore"):
                     return np.where(o, (x - n) / (f - n), f / (f - n) * (1.0 - n / x))
             return np.where(o, n + x * (f - n), n / (1.0 - x * (f - n) / f))
-        import drjit as dr
         if fn == "ndc_depth":
             return dr.select(o > 0.5, (x - n) / (f - n), f / (f - n) * (1.0 - n / x))
         return dr.select(o > 0.5, n + x * (f - n), n / (1.0 - x * (f - n) / f))
@@ -243,8 +244,6 @@ class Projection:
                 for f in self.faces]
         if isinstance(face, np.ndarray):
             return np.asarray(vals, np.float64)[face]
-        import drjit as dr
-        import mitsuba as mi
         return dr.gather(mi.Float, mi.Float(vals), mi.UInt32(face))
 
     def matrices(self, face: int = 0) -> tuple:
@@ -407,15 +406,12 @@ class LightView:
 
     def dr(self, name: str):
         """Flat Dr.Jit Float of the map ``name`` ('depth', 'z', 'slope'), made once."""
-        import mitsuba as mi
         if name not in self._dr:
             self._dr[name] = mi.Float(np.ascontiguousarray(getattr(self, name), np.float32).ravel())
         return self._dr[name]
 
     def fetch(self, name: str, face, ix, iy):
         """Texel values at integer texel coordinates, clamped to the face (Dr.Jit)."""
-        import drjit as dr
-        import mitsuba as mi
         N = self.res
         ix = dr.clip(mi.Int32(ix), 0, N - 1)
         iy = dr.clip(mi.Int32(iy), 0, N - 1)
@@ -430,8 +426,6 @@ class LightView:
         ``inside`` (in front of the camera and within the face), ``texel`` (world size of
         one texel at that depth).
         """
-        import drjit as dr
-        import mitsuba as mi
         faces = self.proj.faces
         o = mi.Point3f(*faces[0].origin)
         rel = p - o
@@ -507,8 +501,6 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     003_b5589b67cce60746.txt §2.3). The light's own emitter shape never occludes.
     ``fit``: which part of the scene the map covers (None: :class:`SceneSphere`).
     """
-    import drjit as dr
-    import mitsuba as mi
 
     proj = projection(light, scene, res, fit)
     bits = int(bits or light.depth_bits)
@@ -574,10 +566,8 @@ def _cast(mi_scene, ray, backface: bool, own_ptr, alpha: bool = False):
     return _cast_loop(mi_scene, ray, backface, own_ptr, alpha)
 
 
-@__import__("drjit").syntax
+@dr.syntax
 def _cast_loop(mi_scene, ray, backface, own_ptr, alpha=False):
-    import drjit as dr
-    import mitsuba as mi
     max_skips = MAX_SKIPS_ALPHA if alpha else MAX_SKIPS
     si = mi_scene.ray_intersect(ray)
     i = mi.UInt32(0)
@@ -594,8 +584,6 @@ def _skip(si, ray, backface, own_ptr, alpha=False):
     """Hits a light-view ray passes: the light's own shape; with ``backface`` surfaces facing the
     light (front-face culling); with ``alpha`` transparent texels of alpha-tested
     casters: the fragment shader's ``discard`` of texels with alpha < cutoff (003 §2.4)."""
-    import drjit as dr
-    import mitsuba as mi
     skip = mi.Bool(False)
     if own_ptr is not None:
         skip |= si.is_valid() & (si.shape == own_ptr)

@@ -31,6 +31,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import drjit as dr
+import mitsuba as mi
 
 from .camera import Camera
 
@@ -43,8 +45,6 @@ class Screen:
     """Per-point G-buffer fields as Dr.Jit arrays on the (sub-)pixel grid of ``camera``."""
 
     def __init__(self, camera: Camera, ss: int, position, normal, valid):
-        import drjit as dr
-        import mitsuba as mi
         self.camera = camera
         self.ss = int(ss)
         self.width, self.height = camera.width * self.ss, camera.height * self.ss
@@ -78,7 +78,6 @@ class Screen:
         """A screen from a view-depth image (H, W) (numpy; 0 or non-finite = no surface) and
         optional normals (H, W, 3): positions are unprojected pixel centres. For tests and for
         depth that does not come from a G-buffer."""
-        import mitsuba as mi
         z = np.asarray(depth, np.float64)
         H, W = z.shape
         if (W, H) != camera.resolution:
@@ -93,8 +92,6 @@ class Screen:
     # -- indexing ----------------------------------------------------------------------------
     def index(self, x, y):
         """Point index (G-buffer order) of grid pixel (x, y), both clamped to the grid (Dr.Jit)."""
-        import drjit as dr
-        import mitsuba as mi
         s, W = self.ss, self.camera.width
         x = mi.UInt32(dr.clip(mi.Int32(x), 0, self.width - 1))
         y = mi.UInt32(dr.clip(mi.Int32(y), 0, self.height - 1))
@@ -111,7 +108,6 @@ class Screen:
     def gather(self, f, dx, dy):
         """The value of ``f`` (a field name or per-point array) at each point's grid neighbour
         (x + dx, y + dy), clamped to the grid; ``dx``, ``dy`` ints or per-point Int32."""
-        import drjit as dr
         v = self.field(f)
         return dr.gather(type(v), v, self.index(self.x + dx, self.y + dy))
 
@@ -125,7 +121,6 @@ class Screen:
         seen from a point at z weighs exp(−½ ((z_k − z) / (depth_sigma · z))²) more (a relative
         depth tolerance); ``normal_power`` multiplies by max(0, n·n_k)^power. A point whose taps
         all vanish keeps its value. Returns an array like ``values``, G-buffer order."""
-        import drjit as dr
         r = int(radius_px)
         if r < 0:
             raise ValueError(f"blur radius {radius_px!r}: expected a non-negative number of pixels")
@@ -156,8 +151,6 @@ class Screen:
         """``f`` (a field name or per-point array) as an ``mi.Texture2f`` over the grid (H, W, C),
         bilinear, clamped; look it up at film uv with ``tex.eval(mi.Point2f(u, v))``. Named
         fields are made once."""
-        import drjit as dr
-        import mitsuba as mi
         if isinstance(f, str) and f in self._tex:
             return self._tex[f]
         v = self.field(f)
@@ -182,8 +175,6 @@ class Screen:
     def project(self, p):
         """World points (mi.Point3f) -> (px, py, view depth) in continuous grid coordinates (pixel
         centres at i + ½, y down) (Dr.Jit)."""
-        import drjit as dr
-        import mitsuba as mi
         c = self.camera
         rel = p - mi.Point3f(*[float(x) for x in c.position])
         z = dr.dot(rel, mi.Vector3f(*[float(x) for x in c.forward]))
@@ -193,7 +184,6 @@ class Screen:
 
     def unproject(self, px, py, depth):
         """Continuous grid coordinates + view depth -> world points (mi.Point3f) (Dr.Jit)."""
-        import mitsuba as mi
         c = self.camera
         x = (2.0 * mi.Float(px) / self.width - 1.0) * c.tan_x * depth
         y = (1.0 - 2.0 * mi.Float(py) / self.height) * c.tan_y * depth
@@ -202,5 +192,4 @@ class Screen:
 
     def film_uv(self, px, py):
         """Continuous grid coordinates -> film uv (the texture's coordinates)."""
-        import mitsuba as mi
         return mi.Point2f(mi.Float(px) / self.width, mi.Float(py) / self.height)

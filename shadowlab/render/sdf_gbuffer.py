@@ -28,6 +28,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import drjit as dr
+import mitsuba as mi
 
 from ..sdf.trace import cone_trace, sphere_trace
 from .camera import Camera
@@ -55,8 +57,6 @@ def pixel_tan_alpha(camera, ss: int = 1) -> float:
 
 def cone_gbuffer(scene, sdf, ss: int = 1, *, eps: float = 1e-4, i_max: int = 512) -> SDFGBuffer:
     """Cone-traced G-buffer of ``sdf`` seen by ``scene``'s camera (see the module docstring)."""
-    import drjit as dr
-    import mitsuba as mi
 
     W, H = scene.resolution
     cam = Camera.from_scene(scene)
@@ -116,8 +116,6 @@ def unshadowed(scene, gb: SDFGBuffer, light_name: str, k: int = 16, seed: int = 
     estimator of :func:`shadowlab.render.shading.unshadowed` (k×k stratified emitter samples,
     PCG32 seeded by (seed, 0xFFFF, point)) with the diffuse BSDF written out, albedo/π·cos, since
     the surface points belong to no Mitsuba shape."""
-    import drjit as dr
-    import mitsuba as mi
     spec = scene.spec.light(light_name)
     k = 1 if spec.is_delta else int(k)
     n = gb.size
@@ -130,10 +128,8 @@ def unshadowed(scene, gb: SDFGBuffer, light_name: str, k: int = 16, seed: int = 
     return U
 
 
-@__import__("drjit").syntax
+@dr.syntax
 def _unshadowed_loop(emitter, si, valid, albedo, rng, k):
-    import drjit as dr
-    import mitsuba as mi
     f = mi.Color3f(0.0)
     i = mi.UInt32(0)
     while i < k * k:

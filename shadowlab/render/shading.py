@@ -20,6 +20,8 @@ intersects and continues through transparent texels (a symbolic loop; slower, so
 from __future__ import annotations
 
 import numpy as np
+import drjit as dr
+import mitsuba as mi
 
 from ..scene.build import transparent
 from .gbuffer import vec_numpy
@@ -41,8 +43,6 @@ def sample_light(scene, si, emitter, k: int, seed: int, rnd: int, shadow: bool, 
     i.e. k² times the unshadowed estimate), ``fv`` (Float, Σ |f|·v), ``fsum`` (Float, Σ |f|)
     and ``v`` (Float, number of unoccluded samples). Visibility is only traced when ``shadow``.
     """
-    import drjit as dr
-    import mitsuba as mi
 
     n = dr.width(si.p)
     idx = dr.arange(mi.UInt32, n)
@@ -55,7 +55,7 @@ def sample_light(scene, si, emitter, k: int, seed: int, rnd: int, shadow: bool, 
 MAX_ALPHA_LAYERS = 64  # transparent texels a shadow ray may pass; a ray still on one after that is blocked
 
 
-@__import__("drjit").syntax
+@dr.syntax
 def occluded_alpha(mi_scene, ray, active):
     """``scene.mi_scene.ray_test`` that sees through transparent texels of alpha-tested casters.
 
@@ -64,8 +64,6 @@ def occluded_alpha(mi_scene, ray, active):
     from it to the same end point. Returns mi.Bool: an opaque surface lies on the segment.
     Segments that ``ray_test`` finds empty are done at its cost (a pre-pass with the same result:
     one pass of 512² shadow rays on ``foliage`` took 14 ms instead of 16 ms; ``ray_test`` alone 2 ms)."""
-    import drjit as dr
-    import mitsuba as mi
     target = ray(ray.maxt)
     active = mi.Bool(active) & mi_scene.ray_test(ray, active)
     flags = mi.RayFlags.Minimal | mi.RayFlags.UV
@@ -81,10 +79,8 @@ def occluded_alpha(mi_scene, ray, active):
     return active & si.is_valid()
 
 
-@__import__("drjit").syntax
+@dr.syntax
 def _loop(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False):
-    import drjit as dr
-    import mitsuba as mi
     ctx = mi.BSDFContext()
     bsdf = si.bsdf()
     n = dr.width(si.p)
@@ -126,8 +122,6 @@ def _loop(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False):
 def unshadowed(scene, gbuffer, light_name: str, k: int = 16, seed: int = 0):
     """Unshadowed outgoing radiance U_L at every G-buffer point (flat mi.Color3f), estimated
     with k×k stratified emitter samples (a delta light needs and gets one)."""
-    import drjit as dr
-    import mitsuba as mi
     spec = scene.spec.light(light_name)
     k = 1 if spec.is_delta else k
     f, _, _, _ = sample_light(scene, gbuffer.si, scene.emitters[light_name], k, seed, 0xFFFF, False)

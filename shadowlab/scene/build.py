@@ -17,6 +17,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import mitsuba as mi
 
 from ..errors import SceneError
 from . import lights as lights_mod
@@ -26,7 +27,6 @@ from .textures import AlphaTextureError, opacity_mask, read_alpha
 
 
 def _transform(s):
-    import mitsuba as mi
     T = mi.ScalarTransform4f
     m = T().translate(list(s.translate))
     for ax, ay, az, deg in s.rotate:
@@ -53,7 +53,6 @@ def opacity_texture(s) -> dict:
     the last texel). The ``mask`` BSDF around the shape's diffuse BSDF makes opacity-0 texels
     transparent (null transmission 1). A fresh dict per call: loading takes the tensor over
     (a second ``mi.load_dict`` of the same dict finds it empty)."""
-    import mitsuba as mi
     try:
         a = read_alpha(s.alpha_texture)
     except AlphaTextureError as e:
@@ -70,7 +69,6 @@ def opacity_texture(s) -> dict:
 
 def shape_dicts(s) -> dict:
     """Mitsuba dicts of one ShapeSpec (a cylinder with caps gives three shapes)."""
-    import mitsuba as mi
     T = mi.ScalarTransform4f
     M = _transform(s)
     b = _bsdf(s)
@@ -175,7 +173,6 @@ def transparent(si, active=True):
 
 
 def sensor_dict(cam, spp: int = 1, seed: int = 0) -> dict:
-    import mitsuba as mi
     W, H = cam.resolution
     return {"type": "perspective", "fov": cam.fov, "fov_axis": "x", "near_clip": cam.near_clip, "far_clip": cam.far_clip,
             "to_world": mi.ScalarTransform4f().look_at(origin=list(cam.position), target=list(cam.target),
@@ -189,7 +186,6 @@ def sensor_dict(cam, spp: int = 1, seed: int = 0) -> dict:
 
 def build(spec: SceneSpec) -> Scene:
     """Load ``spec`` into Mitsuba (the backend must be initialised)."""
-    import mitsuba as mi
 
     def geometry():  # fresh dicts per load: Mitsuba takes over a bitmap texture's "data" tensor
         geom = {}

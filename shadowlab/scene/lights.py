@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import mitsuba as mi
 
 from ..errors import SceneError
 from .spec import LightSpec
@@ -86,7 +87,6 @@ def emission(light: LightSpec) -> tuple[str, float]:
 def mitsuba_dict(light: LightSpec, scene_center, scene_radius) -> tuple[str, dict]:
     """(key, Mitsuba dict) of the light's emitter, as a shape carrying an area emitter or as a
     delta emitter. The key is ``light_<name>``; shadowlab finds the emitter by it."""
-    import mitsuba as mi
     T = mi.ScalarTransform4f
     qty, value = emission(light)
     rgb = {"type": "rgb", "value": [c * value for c in light.color]}

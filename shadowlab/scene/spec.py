@@ -27,6 +27,7 @@ import re
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from dataclasses import replace
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -183,7 +184,6 @@ class SceneSpec:
                          f"{', '.join(l.name for l in self.lights)}")
 
     def with_resolution(self, w: int, h: int) -> "SceneSpec":
-        from dataclasses import replace
         return replace(self, camera=replace(self.camera, resolution=(int(w), int(h))))
 
 

@@ -24,6 +24,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import mitsuba as mi
 
 
 class AlphaTextureError(ValueError):
@@ -32,7 +33,6 @@ class AlphaTextureError(ValueError):
 
 def read_alpha(path) -> np.ndarray:
     """Alpha (H, W) float32 in [0, 1] of the image at ``path`` (see the module docstring)."""
-    import mitsuba as mi
     try:
         bmp = mi.Bitmap(str(path))
     except Exception as e:  # Mitsuba's message names the format problem
@@ -106,7 +106,6 @@ def write_leaf_png(path, size: int = 128, edge: float = 0.03, color=(0.20, 0.45,
     """Write the leaf texture as an 8-bit RGBA PNG (RGB a flat sRGB green, A = :func:`leaf_alpha`);
     returns the alpha (uint8). ``python -m shadowlab.scene.textures`` regenerates
     ``scenes/textures/leaf.png``."""
-    import mitsuba as mi
     a = leaf_alpha(size, edge)
     rgb = np.broadcast_to(np.round(np.asarray(color) * 255).astype(np.uint8), (*a.shape, 3))
     img = np.ascontiguousarray(np.concatenate([rgb, a[..., None]], axis=-1))

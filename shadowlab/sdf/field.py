@@ -37,6 +37,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import drjit as dr
+import mitsuba as mi
 
 GRAD_H = 1e-3        # central-difference step of SDF.gradient (scene units)
 SLAB_THICKNESS = 0.02  # world thickness of the solid twins of Mitsuba rectangles and disks
@@ -54,12 +56,10 @@ def _v3(x) -> np.ndarray:
 def _vec(p):
     """Any Dr.Jit 3-vector (Point3f, Vector3f, Normal3f) as mi.Vector3f: Point3f + Vector3f is a
     Vector3f in Mitsuba's bindings, so arithmetic is done on vectors throughout."""
-    import mitsuba as mi
     return mi.Vector3f(p)
 
 
 def _const(a) -> object:
-    import mitsuba as mi
     return mi.Vector3f(float(a[0]), float(a[1]), float(a[2]))
 
 
@@ -101,8 +101,6 @@ class SDF:
         >>> [round(float(c[0]), 4) for c in g]
         [0.0, 1.0, 0.0]
         """
-        import drjit as dr
-        import mitsuba as mi
         q = _vec(p)
         comps = []
         for axis in range(3):
@@ -148,7 +146,6 @@ class Plane(SDF):
         self.height = float(height)
 
     def distance(self, p):
-        import drjit as dr
         return dr.dot(_vec(p), _const(self.normal)) - self.height
 
 
@@ -170,7 +167,6 @@ class Sphere(SDF):
         self.bbox_min, self.bbox_max = self.center - self.radius, self.center + self.radius
 
     def distance(self, p):
-        import drjit as dr
         return dr.norm(_vec(p) - _const(self.center)) - self.radius
 
 
@@ -196,7 +192,6 @@ class Box(SDF):
         self.bbox_min, self.bbox_max = self.center - self.half, self.center + self.half
 
     def distance(self, p):
-        import drjit as dr
         q = dr.abs(_vec(p) - _const(self.center)) - _const(self.half - self.rounding)
         outside = dr.norm(dr.maximum(q, 0.0))
         inside = dr.minimum(dr.maximum(q.x, dr.maximum(q.y, q.z)), 0.0)
@@ -225,7 +220,6 @@ class Segment(SDF):
         self.bbox_max = np.maximum(self.a, self.b) + r
 
     def distance(self, p):
-        import drjit as dr
         ba = self.b - self.a
         pa = _vec(p) - _const(self.a)
         h = dr.clip(dr.dot(pa, _const(ba)) / float(ba @ ba), 0.0, 1.0)
@@ -272,7 +266,6 @@ class Cylinder(SDF):
         self.bbox_max = np.maximum(self.a, self.b) + ext
 
     def distance(self, p):
-        import drjit as dr
         pm = _vec(p) - _const(self.mid)
         u = _const(self.axis)
         h = dr.dot(pm, u)
@@ -319,7 +312,6 @@ class Transformed(SDF):
             self.bbox_min, self.bbox_max = w.min(0), w.max(0)
 
     def distance(self, p):
-        import mitsuba as mi
         q = _vec(p) - _const(self.t)
         R = self.inv
         local = mi.Vector3f(*(q.x * float(R[i, 0]) + q.y * float(R[i, 1]) + q.z * float(R[i, 2]) for i in range(3)))
@@ -382,7 +374,6 @@ class Union(SDF):
         return [leaf for c in self.children for leaf in c.primitives]
 
     def distance(self, p):
-        import drjit as dr
         d = self.children[0].distance(p)
         for c in self.children[1:]:
             d = dr.minimum(d, c.distance(p))
@@ -409,7 +400,6 @@ class Intersection(SDF):
         self.bbox_max = np.min([c.bbox_max for c in self.children], 0)
 
     def distance(self, p):
-        import drjit as dr
         d = self.children[0].distance(p)
         for c in self.children[1:]:
             d = dr.maximum(d, c.distance(p))
@@ -432,7 +422,6 @@ class Difference(SDF):
         self.bbox_min, self.bbox_max = a.bbox_min.copy(), a.bbox_max.copy()
 
     def distance(self, p):
-        import drjit as dr
         return dr.maximum(self.a.distance(p), -self.b.distance(p))
 
 
@@ -490,18 +479,15 @@ class Mandelbulb(SDF):
         self.bbox_min, self.bbox_max = np.full(3, -self.bound_radius), np.full(3, self.bound_radius)
 
     def distance(self, p):
-        import drjit as dr
         q = _vec(p)
         return dr.maximum(dr.norm(q) - self.bound_radius, _mandelbulb_de(q, self.power, self.iterations,
                                                                          self.bailout) * self.step)
 
 
-@__import__("drjit").syntax
+@dr.syntax
 def _mandelbulb_de(p, power, iterations, bailout):
     """The escape-time loop of :class:`Mandelbulb` (a Dr.Jit symbolic loop: lanes leave it at
     the bailout). ``p`` is a mi.Vector3f; y is the pole axis as in Quílez's shader."""
-    import drjit as dr
-    import mitsuba as mi
     w = mi.Vector3f(p)
     m = dr.squared_norm(w)
     dz = mi.Float(1.0)

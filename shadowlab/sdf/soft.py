@@ -89,6 +89,7 @@ from dataclasses import dataclass
 
 import drjit as dr
 import numpy as np
+import mitsuba as mi
 
 TAU_INV_ITERATIONS = 22           # bisection halvings of [−1, 1]: 2/2^23 < 1e-6 in r
 VARIANTS = ("base", "linear", "discrete", "convex")
@@ -167,7 +168,6 @@ class Cone:
 
 def _box_clip(o, v, lo, hi, grow):
     """[t_enter, t_exit] of the ray o + t·v in the box [lo − grow, hi + grow] (slab test)."""
-    import mitsuba as mi
     inv = 1.0 / mi.Vector3f(dr.select(dr.abs(v.x) > 1e-12, v.x, 1e-12), dr.select(dr.abs(v.y) > 1e-12, v.y, 1e-12),
                             dr.select(dr.abs(v.z) > 1e-12, v.z, 1e-12))
     a = (mi.Vector3f(*map(float, lo)) - grow - o) * inv
@@ -187,7 +187,6 @@ def make_cone(p, R0, center, R, direction: str = "A", bbox=None) -> Cone:
     """The cone from the surface sphere (``p``, ``R0``; per point) to the light sphere
     (``center``, ``R``), module docstring. ``R`` may be a Dr.Jit Float with gradients (width 1
     or per point); ``bbox = (lo, hi)`` clips the march to the SDF's bounds."""
-    import mitsuba as mi
     if direction not in DIRECTIONS:
         raise ValueError(f"direction must be A or B, not {direction!r}")
     p = mi.Vector3f(p)
@@ -234,14 +233,12 @@ class March:
 
 
 def _opaque(v, kind="float"):
-    import mitsuba as mi
     if isinstance(v, dr.ArrayBase):
         return v
     return dr.opaque(mi.Float if kind == "float" else mi.UInt32, float(v) if kind == "float" else int(v))
 
 
 def _state(cone):
-    import mitsuba as mi
     n = dr.width(cone.d)
     return (mi.Float(cone.t0), dr.full(mi.Float, 1.0, n), mi.Float(cone.t0), dr.full(mi.Float, dr.inf, n),
             dr.full(mi.Bool, False, n), dr.zeros(mi.UInt32, n))
@@ -253,7 +250,6 @@ def _step(F, RC, cone, t):
 
 
 def _point(cone, t):
-    import mitsuba as mi
     return mi.Point3f(cone.o + cone.v * t)
 
 
@@ -317,7 +313,6 @@ def _march_discrete(sdf, cone, eps, rc1, i_max):
 
 @dr.syntax
 def _march_convex(sdf, prims, convex, cone, e, r_stop, i_max):
-    import mitsuba as mi
     t, RT, t_min, f_min, found, i = _state(cone)
     RC = RT - e
     n = dr.width(t)
@@ -375,7 +370,6 @@ def march(sdf, cone: Cone, variant: str = "linear", *, eps: float = 1.0 / 30, i_
     """Run one of the single-ray algorithms (module docstring) on ``cone``; returns a
     :class:`March`. ``cone`` may carry gradients (light radius): the loop runs on its detached
     copy and the result is recomputed from it (envelope theorem)."""
-    import mitsuba as mi
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, not {variant!r}")
     if not (0.0 < eps < 1.0):
@@ -412,7 +406,6 @@ def plane_residual(sdf, m: March):
     axis and e ⟂ g, v, the plane predicts f(x ± ρg) = f_min ± ρ and f(x ± ρe) = f_min; returns
     max |f − prediction| / ρ over the four probes (0 for a plane parallel to the axis; 1 where
     nothing was found). Ten SDF evaluations per point."""
-    import mitsuba as mi
     c = m.cone.detach()
     x = mi.Vector3f(c.o + c.v * m.t_min)
     rho = dr.maximum(c.rho(m.t_min), 1e-12)
@@ -431,7 +424,6 @@ def edge_line(sdf, m: March):
     """The occluder's edge in the cross-section at the minimum ([Bán 2019, §5.3.1]): returns
     (x_min, unit direction g⊥ across the axis pointing *away* from the occluder, f_min): a ray
     crossing that plane at y is blocked iff ⟨y − x_min, g⊥⟩ ≤ −f_min."""
-    import mitsuba as mi
     c = m.cone.detach()
     x = mi.Vector3f(c.o + c.v * m.t_min)
     g = mi.Vector3f(sdf.gradient(x))
@@ -457,7 +449,6 @@ def _quilez_ratio(h, ph, t, improved: bool):
 
 @dr.syntax
 def _quilez_loop(sdf, o, v, t_end, eps, i_max, improved):
-    import mitsuba as mi
     n = dr.width(t_end)
     t = dr.zeros(mi.Float, n)
     q = dr.full(mi.Float, dr.inf, n)
@@ -480,7 +471,6 @@ def quilez(sdf, p, center, R, *, k=None, variant: str = "quilez2010", eps: float
     maps the light size per point: k = √(d² − R²)/R. The loop keeps min h/t (resp. Aaltonen's
     ratio) and the result ``clamp(k·min, 0, 1)`` is formed outside it, so it is differentiable
     in a Dr.Jit ``R``. Returns (visibility, iterations)."""
-    import mitsuba as mi
     if variant not in QUILEZ_VARIANTS:
         raise ValueError(f"variant must be one of {QUILEZ_VARIANTS}, not {variant!r}")
     p = mi.Vector3f(p)
@@ -517,7 +507,6 @@ _HALTON = {}
 
 
 def _halton_arrays(n: int):
-    import mitsuba as mi
     key = (int(n), mi.variant())
     if key not in _HALTON:
         _HALTON[key] = (mi.Float(halton(n, 2).astype(np.float32)), mi.Float(halton(n, 3).astype(np.float32)))
@@ -542,7 +531,6 @@ def _hash_u32(seed: int) -> int:
 def _disk_ray(j, h2, h3, off1, off2, nmax, o, v, e1, e2, c, dc, R, rho_d, nrm, sqrt_scheme, solid):
     """Direction, trace length, weight (disk or solid-angle measure) and cosine factor
     max(0, n·ω) of Halton sample ``j`` (module docstring)."""
-    import mitsuba as mi
     jj = dr.minimum(j, nmax - 1)
     u1 = dr.gather(mi.Float, h2, jj) + off1
     u2 = dr.gather(mi.Float, h3, jj) + off2
@@ -570,7 +558,6 @@ def _disk_ray(j, h2, h3, off1, off2, nmax, o, v, e1, e2, c, dc, R, rho_d, nrm, s
 def _mc_loop(sdf, o, v, e1, e2, c, dc, R, rho_d, nrm, h2, h3, off1, off2, n, eps, i_max, sqrt_scheme, solid):
     """One sphere-traced ray per Halton sample; returns (Σw·v/Σw, Σw·cos·v/Σw·cos, SDF evaluations):
     both measures from the same rays."""
-    import mitsuba as mi
     N = dr.width(dc)
     j = dr.zeros(mi.UInt32, N)
     omega, tmax, w, cw = _disk_ray(j, h2, h3, off1, off2, n, o, v, e1, e2, c, dc, R, rho_d, nrm, sqrt_scheme, solid)
@@ -610,7 +597,6 @@ def _mc_loop(sdf, o, v, e1, e2, c, dc, R, rho_d, nrm, h2, h3, off1, off2, n, eps
 def start_points(sdf, points, normals, clearance: float):
     """``points`` moved along ``normals`` until they are ``clearance`` off the SDF's surface
     (points already farther away stay): the start of shadow rays."""
-    import mitsuba as mi
     p = mi.Vector3f(points)
     n = mi.Vector3f(normals)
     f = sdf.distance(mi.Point3f(p))
@@ -631,7 +617,6 @@ def mc_cone_visibility(sdf, points, normals, light, n: int = 256, *, scheme: str
     after ``i_max`` steps counts as blocked. ``measure`` / ``cosine``: module docstring.
     Returns mi.Float per point (and the SDF evaluations per point with ``return_iterations``);
     ``cosine="both"`` returns the pair (plain, cosine-weighted) from the same rays."""
-    import mitsuba as mi
     if scheme not in SCHEMES:
         raise ValueError(f"scheme must be one of {SCHEMES}, not {scheme!r}")
     if measure not in MEASURES:

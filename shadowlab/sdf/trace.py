@@ -23,12 +23,12 @@ and the cone parameters are opaque, so new values reuse the compiled kernel.
 from __future__ import annotations
 
 import drjit as dr
+import mitsuba as mi
 
 CONE_KAPPA = 0.25  # cone_trace stops when f < (1 + κ)·(R0 + t·tanα) + eps
 
 
 def _f(v):
-    import mitsuba as mi
     return v if isinstance(v, mi.Float) else dr.opaque(mi.Float, float(v))
 
 
@@ -39,7 +39,6 @@ def sphere_trace(sdf, o, d, t_max, *, eps=1e-4, i_max=256, t_min=0.0):
     ``t_max`` and ``i_max`` steps; ``t`` (mi.Float) the stop distance (``t_max`` for a miss);
     ``iterations`` (mi.UInt32) the number of distance evaluations.
     """
-    import mitsuba as mi
     o, d = mi.Vector3f(o), mi.Vector3f(d)
     t0 = dr.zeros(mi.Float, dr.width(o)) + _f(t_min)
     return _sphere_loop(sdf, o, d, t0, _f(t_max), _f(eps), dr.opaque(mi.UInt32, int(i_max)))
@@ -47,7 +46,6 @@ def sphere_trace(sdf, o, d, t_max, *, eps=1e-4, i_max=256, t_min=0.0):
 
 @dr.syntax
 def _sphere_loop(sdf, o, d, t, t_max, eps, imax):
-    import mitsuba as mi
     i = mi.UInt32(0)
     hit = mi.Bool(False)
     active = t < t_max
@@ -66,7 +64,6 @@ def cone_trace(sdf, o, d, t_max, tan_alpha, *, r0=0.0, eps=1e-4, i_max=256, kapp
 
     Returns ``(hit, t, iterations)``; a hit where ``f(o + t·d) < (1 + κ)·(r0 + t·tanα) + eps``.
     """
-    import mitsuba as mi
     o, d = mi.Vector3f(o), mi.Vector3f(d)
     return _cone_loop(sdf, o, d, _f(t_max), _f(tan_alpha), _f(r0), _f(eps), 1.0 + _f(kappa),
                       dr.opaque(mi.UInt32, int(i_max)))
@@ -74,7 +71,6 @@ def cone_trace(sdf, o, d, t_max, tan_alpha, *, r0=0.0, eps=1e-4, i_max=256, kapp
 
 @dr.syntax
 def _cone_loop(sdf, o, d, t_max, ta, r0, eps, k1, imax):
-    import mitsuba as mi
     t = dr.zeros(mi.Float, dr.width(o))
     i = mi.UInt32(0)
     hit = mi.Bool(False)
@@ -95,7 +91,6 @@ def hard_visibility(sdf, p, n, target, *, eps=1e-4, i_max=256, offset=None, retu
     ``p`` is already off the surface) reaches ``target`` without a hit, else 0 (mi.Float), and
     the SDF evaluations per lane with ``return_iterations``. ``target`` may be one point or one
     per lane (a 3-sequence or a Dr.Jit vector)."""
-    import mitsuba as mi
     p = mi.Vector3f(p)
     target = mi.Vector3f(target) if isinstance(target, dr.ArrayBase) else mi.Vector3f(*map(float, target))
     o = p if n is None else p + mi.Vector3f(n) * float(4 * eps if offset is None else offset)
