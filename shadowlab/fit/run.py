@@ -29,6 +29,20 @@ DEFAULT_PARAMS = {"hard": ("slope_scaled_depth_bias", "depth_bias"), "pcf": ("ke
 DEFAULT_LOSS = {"hard": "rmse"}
 
 
+#: the ``compare`` metric a fit may not make worse than at its start (per loss): the fitted values
+#: are kept only if it does not rise, else the fit ends at its start (and says so in its notes)
+GUARD_METRIC = {"rmse_penumbra": "rmse", "rmse": "rmse", "flip": "flip"}
+
+
+def _worse(after, before) -> bool:
+    """``after`` is a worse metric value than ``before`` (NaN never counts as better)."""
+    if after is None or before is None:
+        return False
+    if math.isnan(before):
+        return False
+    return math.isnan(after) or after > before
+
+
 def default_loss(tech_name: str) -> str:
     return DEFAULT_LOSS.get(tech_name, "rmse_penumbra")
 
@@ -100,15 +114,9 @@ def parse_ranges(items, techniques: list[str]) -> dict:
 
 def reference_value(tech, name: str, value, frame):
     """The value a window is centred on and a "from the scene" default replaced by: the value
-    itself, except ``pcss.light_size`` 0 (= from the scene), which becomes the scene's light
-    size (the mean over the lights of ``pcss.scene_light_size``)."""
-    if tech.name == "pcss" and name == "light_size" and not isinstance(value, bool) and float(value) == 0.0:
-        from ..techniques.pcss import scene_light_size
-        s = float(np.mean([scene_light_size(l) for l in frame.lights]))
-        if s <= 0:
-            raise InputError("pcss.light_size from the scene is 0 (delta lights): give a start value with "
-                             "--set pcss.light_size=VALUE")
-        return s
+    itself, except ``resolution`` 0 (= the lights' own maps), which becomes the largest map.
+    (Light sizes need no rule: ``light_scale`` multiplies each light's own size, so 1 is the
+    scene's lights, one scale for all of them.)"""
     if name == "resolution" and tech.param(name).kind == "int" and tech.param(name).lo == 0 and int(value) == 0:
         return int(max(l.shadow_map for l in frame.lights))
     return value
@@ -116,9 +124,7 @@ def reference_value(tech, name: str, value, frame):
 
 def scene_floor(tech, name: str, ref):
     """The lower end of the window of a parameter whose 0 means "from the scene": a fitted value
-    must not become that 0 (``pcss.light_size``: 10⁻³ of the scene's size; ``resolution``: 64)."""
-    if tech.name == "pcss" and name == "light_size":
-        return 1e-3 * float(ref)
+    must not become that 0 (``resolution``: 64)."""
     if name == "resolution":
         p = tech.param(name)
         if p.kind == "int" and p.lo == 0:
@@ -224,6 +230,16 @@ def execute(p: Plan, frame, truth, budget: Budget) -> dict:
     res_a = p.tech.render(frame, {**p.fixed, **fitted})
     m_b, pl_b, img_b = technique_metrics(frame, truth, res_b)
     m_a, pl_a, img_a = technique_metrics(frame, truth, res_a)
+    # never end worse than the start as ``compare`` measures it: these renders are exactly what
+    # ``compare --preset`` renders (same frame, plain values, the preset's repr round trip)
+    guard = GUARD_METRIC[p.loss]
+    if _worse(m_a.get(guard), m_b.get(guard)):
+        s.notes.append(f"the best point of the search ({', '.join(f'{k} {v}' for k, v in fitted.items())}) lowered "
+                       f"the {p.loss} loss but raised compare's {guard} from {m_b[guard]:.6g} to {m_a[guard]:.6g}: "
+                       f"kept the start")
+        fitted = {d.name: _clean(p.start[d.name]) for d in p.dims}
+        best_obj = obj.value(dict(p.start))          # outside the search: not counted
+        res_a, m_a, pl_a, img_a = res_b, m_b, pl_b, img_b
     defaults = p.tech.defaults()
     nondefault = {k: _clean(v) for k, v in p.fixed.items() if v != defaults.get(k)}
     new_per_it = [h["kernels_new"] for h in hist]

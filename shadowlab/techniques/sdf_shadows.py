@@ -114,7 +114,7 @@ class SDFTechnique(Technique):
     """The SDF family's per-light part: :meth:`light_visibility` gives per-point Dr.Jit
     visibility, AOVs (``iterations``: SDF evaluations per point) and the light radius used."""
 
-    source = "[Bálint 2019]"
+    source = SOURCE
 
     def light_radius(self, frame, light, values):
         """(centre, radius as a Dr.Jit Float of width 1, its value) of the light's sphere:

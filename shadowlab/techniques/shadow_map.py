@@ -223,7 +223,7 @@ class ShadowMapTechnique(Technique):
     implement); ``texel``, ``receiver_bias`` and ``depth_bias`` AOVs and the map's stats
     (``maps``: resolution, depth bits, faces, texels, near, far) come with it."""
 
-    source = "[Buljan 2020]"
+    source = "003_b5589b67cce60746.txt"
 
     def resolve(self, overrides: dict | None = None) -> dict:
         values = super().resolve(overrides)
