@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import drjit as dr
 
 from . import backend
 from .errors import InputError, ReferenceError_
@@ -92,7 +93,6 @@ def run_techniques(frame, names: list[str], params: dict) -> dict:
     """Render each technique on ``frame``: a first run (builds the light views it needs and
     compiles its kernels) and a timed warm run. Returns {name: (ShadowResult, params, timing)}
     with timing = {"time_s": warm run, "first_run_s": first run}."""
-    import drjit as dr
     out = {}
     for n in names:
         t = tbase.get(n)

@@ -6,9 +6,9 @@ fit.json / preset shapes, ``compare --preset``.
 Main scene: ``parallel_planes`` with its committed 128² reference (square light of side 1 at
 height 4, half-plane occluder at height 2, floor at 0: PCSS's own assumption, so the light size
 that fits is the physical one, 1; its penumbra on the floor is 25 shadow-map texels wide, as
-pcss's ``penumbra_texels`` AOV says). Measured here: pcss.light_size from 0.5 → 0.9825 in 25
-Adam steps (numpy grid optimum 0.985); esm.exponent → 7.89; pcf kernel × softness → 9 × 2.73
-= 24.5 texels.
+pcss's ``penumbra_texels`` AOV says). Measured here: pcss.light_scale (the light's side is 1)
+from 0.5 → 0.9825 in 25 Adam steps (numpy grid optimum 0.985); esm.exponent → 7.89; pcf kernel ×
+softness → 9 × 2.73 = 24.5 texels.
 """
 
 import hashlib
@@ -70,8 +70,8 @@ def test_loss_is_the_numpy_penumbra_mse_and_the_noise_floor_is_mean_variance(pp)
     sc, truth, meta, frame = pp
     obj = Objective(frame, truth, get("pcss"), "rmse_penumbra")
     for size in (0.6, 1.0):
-        o = obj.value({"light_size": size})
-        assert o == pytest.approx(_numpy_loss(pp, "pcss", {"light_size": size}), rel=1e-4)
+        o = obj.value({"light_scale": size})
+        assert o == pytest.approx(_numpy_loss(pp, "pcss", {"light_scale": size}), rel=1e-4)
     t = truth.lights[LIGHT].V
     m = truth.mask & frame.lit_mask(LIGHT) & (t > 0.02) & (t < 0.98)
     floor = float(np.mean(truth.lights[LIGHT].V_se[m].astype(np.float64) ** 2))
@@ -85,7 +85,7 @@ def test_loss_is_the_numpy_penumbra_mse_and_the_noise_floor_is_mean_variance(pp)
 
 def test_supersampled_reference_averages_sub_pixels_in_the_loss(tmp_path, mitsuba_backend):
     """With a reference at s×s sub-pixel points, the Dr.Jit loss averages each pixel's points
-    (``dr.block_sum``) like ``frame.image`` does, and its gradient still reaches light_size."""
+    (``dr.block_sum``) like ``frame.image`` does, and its gradient still reaches light_scale."""
     import drjit as dr
     import mitsuba as mi
     from shadowlab import pipeline
@@ -101,13 +101,13 @@ def test_supersampled_reference_averages_sub_pixels_in_the_loss(tmp_path, mitsub
     sc, truth, meta, frame = R.prepare(str(scene), base=base)
     assert frame.gbuffer.ss == 2
     obj = Objective(frame, truth, get("pcss"), "rmse_penumbra")
-    v = frame.image(get("pcss").render(frame, {"light_size": 0.8}).visibility[LIGHT])
+    v = frame.image(get("pcss").render(frame, {"light_scale": 0.8}).visibility[LIGHT])
     t = truth.lights[LIGHT].V
     m = truth.mask & frame.lit_mask(LIGHT) & (t > 0.02) & (t < 0.98)
-    assert obj.value({"light_size": 0.8}) == pytest.approx(float(np.mean((v[m] - t[m]) ** 2)), rel=1e-4)
+    assert obj.value({"light_scale": 0.8}) == pytest.approx(float(np.mean((v[m] - t[m]) ** 2)), rel=1e-4)
     x = mi.Float(0.8)
     dr.enable_grad(x)
-    loss, _ = obj.loss_dr({"light_size": x})
+    loss, _ = obj.loss_dr({"light_scale": x})
     dr.backward(loss)
     assert float(dr.grad(x)[0]) < 0          # 0.8 is below the physical size 1: growing it helps
 
@@ -116,11 +116,11 @@ def test_supersampled_reference_averages_sub_pixels_in_the_loss(tmp_path, mitsub
 # fits that recover known optima
 
 
-def test_pcss_light_size_adam_fit_is_within_2_percent_of_the_grid_optimum(pp):
-    r = _fit(pp, "pcss", ["light_size"], method="adam", sets={"light_size": 0.5})
-    x = r["params"]["light_size"]["fitted"]
+def test_pcss_light_scale_adam_fit_is_within_2_percent_of_the_grid_optimum(pp):
+    r = _fit(pp, "pcss", ["light_scale"], method="adam", sets={"light_scale": 0.5})
+    x = r["params"]["light_scale"]["fitted"]
     xs = np.linspace(0.9, 1.1, 41)
-    grid = [_numpy_loss(pp, "pcss", {"light_size": float(s)}) for s in xs]
+    grid = [_numpy_loss(pp, "pcss", {"light_scale": float(s)}) for s in xs]
     x_grid = float(xs[int(np.argmin(grid))])
     # measured: fitted 0.9825, grid optimum 0.985; the closed form's light size is 1
     assert abs(x - x_grid) / x_grid < 0.02, (x, x_grid)
@@ -129,8 +129,8 @@ def test_pcss_light_size_adam_fit_is_within_2_percent_of_the_grid_optimum(pp):
     assert r["loss_after"] < 0.05 * r["loss_before"]
     assert r["objective_after"] <= min(grid) * 1.01
     assert r["metrics_after"]["rmse_penumbra"] < 0.1 * r["metrics_before"]["rmse_penumbra"]
-    # r = 1: [max(0, 1 − 3), 1 + 3], but 0 means "from the scene": the window starts at 10⁻³·r
-    assert r["params"]["light_size"]["window"] == [0.001, 4.0]
+    # r = 1: [max(0, 1 − 3), 1 + 3]; light_scale 0 is a point light, a value like any other
+    assert r["params"]["light_scale"]["window"] == [0.0, 4.0]
 
 
 def test_esm_exponent_fit_reaches_the_grid_minimum(pp):
@@ -199,16 +199,16 @@ def test_kernels_compile_once_per_fit(pp):
 
 def test_flip_loss_is_fitted_without_gradients(pp):
     from shadowlab.fit import run as R
-    r = _fit(pp, "pcss", ["light_size"], sets={"light_size": 0.5})
+    r = _fit(pp, "pcss", ["light_scale"], sets={"light_scale": 0.5})
     sc, truth, meta, frame = pp
-    p = R.plan("pcss", frame, params=["light_size"], loss="flip", sets={"light_size": 0.5})
+    p = R.plan("pcss", frame, params=["light_scale"], loss="flip", sets={"light_scale": 0.5})
     assert p.dims[0].method == "golden"
     f = R.execute(p, frame, truth, R.Budget(evals=8))
     assert f["gradient_evaluations"] == 0 and f["evaluations"] == 1 + 8         # the start + 8
     assert f["loss_after"] < 0.5 * f["loss_before"]
-    assert abs(f["params"]["light_size"]["fitted"] - r["params"]["light_size"]["fitted"]) < 0.15
+    assert abs(f["params"]["light_scale"]["fitted"] - r["params"]["light_scale"]["fitted"]) < 0.15
     with pytest.raises(InputError, match="no gradient"):
-        R.plan("pcss", frame, params=["light_size"], loss="flip", method="adam")
+        R.plan("pcss", frame, params=["light_scale"], loss="flip", method="adam")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -217,7 +217,7 @@ def test_flip_loss_is_fitted_without_gradients(pp):
 
 def test_windows_follow_the_declaration():
     from shadowlab.techniques.base import Param
-    size = Param("light_size", 0.0, "float", 0.0, 100.0, differentiable=True)
+    size = Param("light_scale", 0.0, "float", 0.0, 100.0, differentiable=True)
     assert S.window(size, 1.0, 1.0) == (0.0, 4.0, "linear")
     assert S.window(size, 1.0, 6.5) == (0.0, 6.5, "linear")          # widened to hold the start
     var = Param("min_variance", 1e-6, "float", 0.0, 0.01, differentiable=True)
@@ -260,13 +260,13 @@ def test_integer_golden_search_keeps_its_evaluation_budget():
 
 
 def test_preset_round_trip_and_validation(tmp_path):
-    vals = {"pcss": {"light_size": 0.9841, "blocker_samples": 16}, "pcf": {"kernel": 5, "bilinear": True}}
+    vals = {"pcss": {"light_scale": 0.9841, "blocker_samples": 16}, "pcf": {"kernel": 5, "bilinear": True}}
     for name in ("p.toml", "p.json"):
         f = P.save(tmp_path / name, "my-preset", vals, "test", {"scene": "parallel_planes"})
         pre = P.load(f)
         assert pre.name == "my-preset" and pre.values == vals and pre.meta["scene"] == "parallel_planes"
     bad = tmp_path / "bad.toml"
-    bad.write_text('name = "x"\n[pcss]\nlight_size = 1000\n')
+    bad.write_text('name = "x"\n[pcss]\nlight_scale = 1000\n')
     with pytest.raises(InputError, match="out of range"):
         P.load(bad)
     bad.write_text('[nope]\nx = 1\n')
@@ -292,10 +292,10 @@ def test_preset_round_trip_and_validation(tmp_path):
 def test_cli_fit_writes_fit_json_plot_images_and_a_preset_compare_accepts(pp, tmp_path, capsys):
     out = tmp_path / "fit"
     saved = tmp_path / "presets" / "pp.toml"
-    rc = _cli("fit", "parallel_planes", "--technique", "pcss", "--set", "pcss.light_size=0.6",
+    rc = _cli("fit", "parallel_planes", "--technique", "pcss", "--set", "pcss.light_scale=0.6",
               "--set", "pcss.blocker_samples=16", "--steps", 8, "--out", out, "--save-preset", saved)
     text = capsys.readouterr().out
-    assert rc == 0 and "light_size 0.6 →" in text
+    assert rc == 0 and "light_scale 0.6 →" in text
     f = json.loads((out / "fit.json").read_text())
     assert f["scene"] == "parallel_planes" and f["mode"] == "one" and f["resolution"] == [128, 128]
     r = f["techniques"]["pcss"]
@@ -303,8 +303,8 @@ def test_cli_fit_writes_fit_json_plot_images_and_a_preset_compare_accepts(pp, tm
               "kernels", "params", "history", "metrics_before", "metrics_after", "loss"):
         assert k in r, k
     assert {"compiled", "loaded_from_disk", "launched", "new_per_iteration"} <= set(r["kernels"])
-    ls = r["params"]["light_size"]
-    assert ls["start"] == 0.6 and ls["method"] == "adam" and ls["window"] == [0.001, 4.0]
+    ls = r["params"]["light_scale"]
+    assert ls["start"] == 0.6 and ls["method"] == "adam" and ls["window"] == [0.0, 4.0]
     assert len(r["history"]) == r["iterations"] + 1 == r["evaluations"] and r["gradient_evaluations"] == 8
     assert r["loss_after"] < r["loss_before"] and r["loss"]["noise_floor_subtracted"]
     assert r["fixed"] == {"blocker_samples": 16}
@@ -312,18 +312,18 @@ def test_cli_fit_writes_fit_json_plot_images_and_a_preset_compare_accepts(pp, tm
     for img in ("loss_pcss.png", "pcss_0_before.png", "pcss_0_after.png", "truth_0.png", "pcss_shaded_after.png"):
         assert img in html and (out / "img" / img).read_bytes()[:4] == b"\x89PNG"
     for pre in (P.load(out / "preset.toml"), P.load(saved)):
-        assert pre.values == {"pcss": {"blocker_samples": 16, "light_size": ls["fitted"]}}
+        assert pre.values == {"pcss": {"blocker_samples": 16, "light_scale": ls["fitted"]}}
     # compare --preset: the preset's techniques and values; --set overrides the preset
     rc = _cli("compare", "parallel_planes", "--preset", saved, "--out", tmp_path / "cmp")
     assert rc == 0
     m = json.loads((tmp_path / "cmp" / "metrics.json").read_text())
     assert list(m["techniques"]) == ["pcss"] and m["preset"]["name"] == "parallel_planes-pcss-fit"
-    assert m["techniques"]["pcss"]["params"]["light_size"] == pytest.approx(ls["fitted"])
+    assert m["techniques"]["pcss"]["params"]["light_scale"] == pytest.approx(ls["fitted"])
     assert m["techniques"]["pcss"]["params"]["blocker_samples"] == 16
-    rc = _cli("compare", "parallel_planes", "--preset", saved, "-t", "pcss,hard", "--set", "pcss.light_size=0.7",
+    rc = _cli("compare", "parallel_planes", "--preset", saved, "-t", "pcss,hard", "--set", "pcss.light_scale=0.7",
               "--out", tmp_path / "cmp2")
     m = json.loads((tmp_path / "cmp2" / "metrics.json").read_text())
-    assert rc == 0 and m["techniques"]["pcss"]["params"]["light_size"] == 0.7 and "hard" in m["techniques"]
+    assert rc == 0 and m["techniques"]["pcss"]["params"]["light_scale"] == 0.7 and "hard" in m["techniques"]
 
 
 def test_cli_fit_all_writes_one_table(pp, tmp_path, capsys):
@@ -351,10 +351,10 @@ def test_cli_bad_input_exits_2_and_overwrites_nothing(pp, tmp_path, capsys, monk
     cases = [
         (("-t", "nope"), "unknown technique 'nope'"),
         (("-t", "pcss", "--params", "nope"), "no parameter 'nope'"),
-        (("-t", "pcss", "--set", "pcss.light_size=1000"), "out of range"),
+        (("-t", "pcss", "--set", "pcss.light_scale=1000"), "out of range"),
         (("-t", "pcss", "--set", "pcss.blocker_samples=7"), "expected one of"),
-        (("-t", "pcss", "--range", "light_size=-1:2"), "out of range"),
-        (("-t", "pcss", "--range", "light_size=2:1"), "LO < HI"),
+        (("-t", "pcss", "--range", "light_scale=-1:2"), "out of range"),
+        (("-t", "pcss", "--range", "light_scale=2:1"), "LO < HI"),
         (("-t", "pcss", "--params", "min_filter", "--method", "adam"), "not differentiable"),
         (("-t", "pcss", "--loss", "flip", "--method", "adam"), "no gradient"),
         (("-t", "pcss", "--loss", "psnr"), "--loss 'psnr'"),
@@ -371,7 +371,7 @@ def test_cli_bad_input_exits_2_and_overwrites_nothing(pp, tmp_path, capsys, monk
         err = capsys.readouterr().err
         assert rc == 2 and msg in err, (args, rc, err)
     bad = tmp_path / "bad.toml"
-    bad.write_text("[pcss]\nlight_size = -1\n")
+    bad.write_text("[pcss]\nlight_scale = -1\n")
     assert _cli("compare", "parallel_planes", "--preset", bad, "--out", out) == 2
     assert "out of range" in capsys.readouterr().err
     # a stale reference (the scene changed since it was rendered) is reported, not used

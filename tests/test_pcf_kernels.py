@@ -123,7 +123,7 @@ def test_declarations():
     for p in t.params:
         assert p.doc and p.source.startswith("003 §")
     doc = pcf_mod.__doc__
-    assert "003_b5589b67cce60746.txt §3.2" in doc
+    assert "[Buljan 2020, §3.2]" in doc                   # the source, by its bibliography key
     for pat in pcf_mod.PATTERNS:
         assert f"``{pat}``" in doc
 

@@ -92,7 +92,7 @@ def test_penumbra_width_agrees_with_the_w_penumbra_prediction(planes):
 @pytest.mark.parametrize("size", [0.5, 1.0, 1.5])
 def test_widths_grow_linearly_with_light_size_like_the_closed_form(planes, size):
     frame, _, x, floor = planes
-    v = _vis(frame, light_size=size)
+    v = _vis(frame, light_scale=size)
     closed = parallel_planes_fraction(x, H_LIGHT, H_OCC, size)
     pen = floor & (closed > 0.02) & (closed < 0.98)
     # measured widths 0.400 / 0.801 / 1.200, RMSE against the closed form 8e-5 / 4e-4 / 6e-4
@@ -102,7 +102,7 @@ def test_widths_grow_linearly_with_light_size_like_the_closed_form(planes, size)
 
 
 def test_zero_light_size_reduces_to_the_hard_shadow_map(planes, mitsuba_backend):
-    """light_size → 0 (0 itself means "from the scene") leaves a hard shadow filtered by
+    """light_scale → 0 (w_light → 0; the lights' sides are 1) leaves a hard shadow filtered by
     ``min_filter`` (one texel); with one PCF tap and no minimum it is one 2×2 bilinear tap.
     Measured: parallel_planes 0.78 % of the pixels differ (none by > 0.5), 0 with one tap;
     contact 1.2 % / 0.94 % differ, 0.07 % / 0.05 % by more than 0.5."""
@@ -111,12 +111,12 @@ def test_zero_light_size_reduces_to_the_hard_shadow_map(planes, mitsuba_backend)
     contact = make_frame(load("contact"), u_strata=1)
     for frame, light in ((planes[0], LIGHT), (contact, "key")):
         hard = frame.image(get("hard").render(frame, {}).visibility[light])
-        for p in ({"light_size": 1e-6}, {"light_size": 1e-6, "pcf_samples": 1, "min_filter": 0.0}):
+        for p in ({"light_scale": 1e-6}, {"light_scale": 1e-6, "pcf_samples": 1, "min_filter": 0.0}):
             d = np.abs(_vis(frame, light, **p) - hard)
             assert np.mean(d > 1e-6) < 0.02, (light, p, np.mean(d > 1e-6))
             assert np.mean(d > 0.5) < 0.002, (light, p, np.mean(d > 0.5))
     frame = planes[0]
-    d = np.abs(_vis(frame, light_size=1e-6, pcf_samples=1, min_filter=0.0)
+    d = np.abs(_vis(frame, light_scale=1e-6, pcf_samples=1, min_filter=0.0)
                - frame.image(get("hard").render(frame, {}).visibility[LIGHT]))
     assert d.max() < 1e-6
 
@@ -188,10 +188,10 @@ def test_light_size_mapping_from_the_scene(planes):
             pcss_mod.SIZE_FACTOR[light.kind] * light.physical_size, rel=1e-12)
     r = get("pcss").render(planes[0], {})
     assert r.stats["light_size"][LIGHT] == 1.0
-    assert get("pcss").render(planes[0], {"light_size": 0.7}).stats["light_size"][LIGHT] == pytest.approx(0.7)
+    assert get("pcss").render(planes[0], {"light_scale": 0.7}).stats["light_size"][LIGHT] == pytest.approx(0.7)
 
 
-def test_light_size_gradient_matches_central_differences(planes):
+def test_light_scale_gradient_matches_central_differences(planes):
     import drjit as dr
     import mitsuba as mi
     frame, truth, _, _ = planes
@@ -199,10 +199,10 @@ def test_light_size_gradient_matches_central_differences(planes):
     p = {"blocker_samples": 16, "pcf_samples": 16}
 
     def loss(size):
-        v = get("pcss").render(frame, {**p, "light_size": size}).visibility[LIGHT]
+        v = get("pcss").render(frame, {**p, "light_scale": size}).visibility[LIGHT]
         return dr.mean(dr.square(v - target))
 
-    assert get("pcss").param("light_size").differentiable
+    assert get("pcss").param("light_scale").differentiable
     for s0, sign in ((0.7, -1.0), (1.3, 1.0)):
         ls = mi.Float(s0)
         dr.enable_grad(ls)
@@ -218,7 +218,7 @@ def test_light_size_gradient_matches_central_differences(planes):
 # ---------------------------------------------------------------------------------------------
 # compilation, determinism, range, AOVs, validation
 
-def test_new_light_size_or_continuous_value_compiles_no_new_kernel(planes):
+def test_new_light_scale_or_continuous_value_compiles_no_new_kernel(planes):
     import drjit as dr
     frame = planes[0]
     t = get("pcss")
@@ -226,8 +226,8 @@ def test_new_light_size_or_continuous_value_compiles_no_new_kernel(planes):
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
         dr.kernel_history_clear()
-        for p in ({"light_size": 0.7}, {"light_size": 1.3, "min_filter": 2.5},
-                  {"light_size": 0.4, "depth_bias": 3, "slope_scaled_depth_bias": 1.0, "constant_bias": 0.01}):
+        for p in ({"light_scale": 0.7}, {"light_scale": 1.3, "min_filter": 2.5},
+                  {"light_scale": 0.4, "depth_bias": 3, "slope_scaled_depth_bias": 1.0, "constant_bias": 0.01}):
             t.render(frame, p)
         jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
     finally:
@@ -238,7 +238,7 @@ def test_new_light_size_or_continuous_value_compiles_no_new_kernel(planes):
 
 def test_same_inputs_same_bits_and_results_in_unit_interval(planes):
     frame = planes[0]
-    for p in ({}, {"light_size": 1.7, "blocker_samples": 16, "pcf_samples": 32},
+    for p in ({}, {"light_scale": 1.7, "blocker_samples": 16, "pcf_samples": 32},
               {"receiver_plane": True, "blocker_samples": 25, "pcf_samples": 1, "min_filter": 4.0}):
         a = get("pcss").render(frame, p)
         b = get("pcss").render(frame, p)
@@ -286,10 +286,10 @@ def test_invalid_parameters_are_refused(mitsuba_backend):
     with pytest.raises(InputError):
         t.resolve({"pcf_samples": 8})
     with pytest.raises(InputError):
-        t.resolve({"light_size": -1.0})
+        t.resolve({"light_scale": -1.0})
     with pytest.raises(InputError):
         t.resolve({"min_filter": mi.Float(2.0)})                       # not differentiable
     with pytest.raises(InputError):
-        t.resolve({"light_size": mi.Float([1.0, 2.0])})
+        t.resolve({"light_scale": mi.Float([1.0, 2.0])})
     ls = mi.Float(0.5)
-    assert t.resolve({"light_size": ls})["light_size"] is ls
+    assert t.resolve({"light_scale": ls})["light_scale"] is ls

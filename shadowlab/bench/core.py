@@ -14,7 +14,7 @@ Measured (never asserted in tests):
   (1×1 … 7×7) and vs shadow-map size (512 … 2048) for PCF, VSM, ESM, EVSM;
 * a 50-value sweep of one continuous parameter per technique: kernels compiled after the first
   value (0 when parameters are opaque) and kernel-cache hits;
-* parameter fitting (``shadowlab.fit.goals``): pcss.light_size by Adam vs the grid-search optimum
+* parameter fitting (``shadowlab.fit.goals``): pcss.light_scale by Adam vs the grid-search optimum
   and the grid of equal final loss.
 """
 
@@ -271,7 +271,7 @@ def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
     res["filters"] = bench_filters(res=128 if quick else 256, map_sizes=(256, 512) if quick else (512, 1024, 2048),
                                    kernels=(1, 3) if quick else (1, 3, 5, 7), repeats=2 if quick else 5)
     res["sweep"] = bench_sweep(values=5 if quick else 50)
-    res["fit"] = bench_fit(quick)  # pcss.light_size: Adam vs grid search (the fitting goals)
+    res["fit"] = bench_fit(quick)  # pcss.light_scale: Adam vs grid search (the fitting goals)
     res["sdf"] = str(sdf_bench(Path(out), quick=quick))  # [Bán 2019, ch. 6]: written to sdf.json / sdf.md
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,13 +1,13 @@
 """The fitting goals, measured (never asserted in tests): ``shadowlab bench`` (section "Parameter
 fitting") or ``python -m shadowlab.fit.goals [--quick] [--out reports/bench]``.
 
-Per scene (committed 128² references), ``pcss.light_size`` with the default loss
-(``rmse_penumbra``) from three starts (the scene's light size s, 0.5·s and 2·s):
+Per scene (committed 128² references), ``pcss.light_scale`` with the default loss
+(``rmse_penumbra``) from three starts (s = 1, each light at its own size, 0.5·s and 2·s):
 
 1. an Adam fit of 25 steps (``--method adam``, the defaults): fitted value, loss, technique
    evaluations (renders), backward passes, kernels compiled, wall time;
 2. the grid-search optimum: a 1025-point grid over the same window (the fit's default window
-   [0.001·s, 4s]), refined by 41 points at 1/20 of its spacing around its best point;
+   [0, 4s]), refined by 41 points at 1/20 of its spacing around its best point;
 3. the grid of equal final loss: the smallest of the nested grids with 2^k + 1 points
    (3, 5, 9, …, 1025: subsets of the 1025-point grid, so their values are exact) whose best
    objective is ≤ the Adam fit's, and its evaluations over the Adam fit's;
@@ -19,13 +19,14 @@ technique evaluations than a grid search of equal final loss.
 
 from __future__ import annotations
 
-import time
-
-import numpy as np
-from pathlib import Path
 import argparse
 import datetime
+import time
+from pathlib import Path
+
 import drjit as dr
+import numpy as np
+
 from .. import backend
 from ..io.jsonio import write_json_atomic
 from ..techniques.pcss import scene_light_size
@@ -38,40 +39,40 @@ GRID_EXP = 10                                    # the finest grid has 2^10 + 1 
 
 
 def _fit(frame, truth, sc, method: str, start: float):
-    p = R.plan("pcss", frame, params=["light_size"], method=method, sets={"light_size": start})
+    p = R.plan("pcss", frame, params=["light_scale"], method=method, sets={"light_scale": start})
     return R.execute(p, frame, truth, R.Budget()), p
 
 
 def scene_goals(name: str, starts=STARTS, grid_exp: int = GRID_EXP) -> dict:
     sc, truth, meta, frame = R.prepare(name)
-    s = float(np.mean([scene_light_size(l) for l in frame.lights]))
+    s = 1.0                                      # light_scale 1: every light at its own size
     fits, lo, hi = [], None, None
     for k in starts:
         r, p = _fit(frame, truth, sc, "adam", s * k)
         d = p.dims[0]
         lo, hi = (d.lo, d.hi) if lo is None else (lo, hi)
-        fits.append({"start": s * k, "fitted": r["params"]["light_size"]["fitted"], "loss": r["loss_after"],
+        fits.append({"start": s * k, "fitted": r["params"]["light_scale"]["fitted"], "loss": r["loss_after"],
                      "objective": r["objective_after"], "evaluations": r["evaluations"],
                      "backward": r["gradient_evaluations"], "kernels_compiled": r["kernels"]["compiled"],
                      "kernels_from_disk": r["kernels"]["loaded_from_disk"],
                      "iterations_with_new_kernels": r["kernels"]["iterations_with_new_kernels"],
                      "wall_time_s": r["wall_time_s"], "window": [d.lo, d.hi]})
     g, _ = _fit(frame, truth, sc, "golden", s)
-    golden = {"fitted": g["params"]["light_size"]["fitted"], "loss": g["loss_after"], "objective": g["objective_after"],
+    golden = {"fitted": g["params"]["light_scale"]["fitted"], "loss": g["loss_after"], "objective": g["objective_after"],
               "evaluations": g["evaluations"], "wall_time_s": g["wall_time_s"]}
     # the grid: one objective, forward renders only
-    obj = Objective(frame, truth, R.plan("pcss", frame, params=["light_size"]).tech, "rmse_penumbra")
+    obj = Objective(frame, truth, R.plan("pcss", frame, params=["light_scale"]).tech, "rmse_penumbra")
     n = 2 ** grid_exp + 1
     xs = np.linspace(lo, hi, n)
     dr.sync_thread()
     t0 = time.perf_counter()
-    fs = np.array([obj.value({"light_size": float(x)}) for x in xs])
+    fs = np.array([obj.value({"light_scale": float(x)}) for x in xs])
     dr.sync_thread()
     t_grid = (time.perf_counter() - t0) / n
     i = int(np.argmin(fs))
     h = (hi - lo) / (n - 1)
     xr = np.linspace(max(lo, xs[i] - h), min(hi, xs[i] + h), 41)
-    fr = np.array([obj.value({"light_size": float(x)}) for x in xr])
+    fr = np.array([obj.value({"light_scale": float(x)}) for x in xr])
     j = int(np.argmin(fr))
     x_opt, f_opt = (float(xr[j]), float(fr[j])) if fr[j] < fs[i] else (float(xs[i]), float(fs[i]))
     nested = {2 ** e + 1: float(fs[:: 2 ** (grid_exp - e)].min()) for e in range(1, grid_exp + 1)}
@@ -91,7 +92,7 @@ def scene_goals(name: str, starts=STARTS, grid_exp: int = GRID_EXP) -> dict:
 
 def measure(quick: bool = False) -> dict:
     scenes = ("parallel_planes",) if quick else SCENES
-    return {"technique": "pcss", "param": "light_size", "loss": "rmse_penumbra",
+    return {"technique": "pcss", "param": "light_scale", "loss": "rmse_penumbra",
             "scenes": [scene_goals(s, starts=(1.0,) if quick else STARTS, grid_exp=7 if quick else GRID_EXP)
                        for s in scenes]}
 
@@ -106,7 +107,7 @@ def _grid_cells(sg: dict, f: dict) -> str:
 
 
 def markdown(res: dict) -> list[str]:
-    lines = ["", "## Parameter fitting (`shadowlab fit`): pcss.light_size, Adam vs grid search", "",
+    lines = ["", "## Parameter fitting (`shadowlab fit`): pcss.light_scale, Adam vs grid search", "",
              "Loss `rmse_penumbra` (visibility RMSE in the truth's penumbra, noise floor subtracted), committed "
              "128² references. Adam: 25 steps (the defaults). Grid optimum: a 1025-point grid over the fit's "
              "window refined by 41 points. Equal-loss grid: the smallest nested grid (2^k + 1 points) whose best "

@@ -23,6 +23,8 @@ s×s sub-pixel shading points of a pixel when the reference was rendered with su
 from __future__ import annotations
 
 import numpy as np
+import drjit as dr
+import mitsuba as mi
 
 from ..errors import InputError
 from ..metrics import flip_map
@@ -49,21 +51,18 @@ class KernelCounter:
     cache), new (= compiled + disk: not in the in-memory cache)} since the last ``take()``."""
 
     def __enter__(self):
-        import drjit as dr
         self._prev = dr.flag(dr.JitFlag.KernelHistory)
         dr.set_flag(dr.JitFlag.KernelHistory, True)
         dr.kernel_history_clear()
         return self
 
     def __exit__(self, *exc):
-        import drjit as dr
         dr.kernel_history_clear()
         dr.set_flag(dr.JitFlag.KernelHistory, self._prev)
         return False
 
     @staticmethod
     def take() -> dict:
-        import drjit as dr
         jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
         # measured on drjit 1.5: a kernel loaded from the disk cache has cache_hit = cache_disk = 1,
         # an in-memory hit cache_hit = 1, cache_disk = 0, a compiled one both 0
@@ -82,8 +81,6 @@ class Objective:
     """
 
     def __init__(self, frame, truth, technique, loss: str = "rmse_penumbra", fixed: dict | None = None):
-        import drjit as dr
-        import mitsuba as mi
         self.frame, self.truth, self.tech = frame, truth, technique
         self.loss = check_loss(loss)
         self.fixed = dict(fixed or {})
@@ -121,14 +118,12 @@ class Objective:
         return self.tech.render(self.frame, {**self.fixed, **values})
 
     def _pixel(self, v):
-        import drjit as dr
         if self.ss2 == 1:
             return v
         return dr.block_sum(v, self.ss2) * (1.0 / self.ss2)
 
     def loss_dr(self, values: dict):
         """The objective as a Dr.Jit Float (width 1); differentiable losses only."""
-        import drjit as dr
         if self.loss not in DIFFERENTIABLE_LOSSES:
             raise InputError(f"--loss {self.loss} has no gradient; use --method golden or grid")
         res = self.render(values)

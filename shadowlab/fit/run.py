@@ -14,13 +14,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import drjit as dr
 
 from ..errors import InputError, ShadowlabError
 from ..pipeline import load_scene, technique_metrics
 from ..reference import store
 from ..render.frame import make_frame
 from ..techniques import base as tbase
-from ..techniques.pcss import scene_light_size
 from . import preset as P
 from . import report as R
 from . import search as S
@@ -34,6 +34,53 @@ DEFAULT_PARAMS = {"hard": ("slope_scaled_depth_bias", "depth_bias"), "pcf": ("ke
 #: ``hard``'s biases trade acne in the lit area against Peter Panning at contacts, and the
 #: penumbra mask sees neither (fitted there, the slope bias runs negative for a 0.5 % gain)
 DEFAULT_LOSS = {"hard": "rmse"}
+
+
+#: the ``compare`` metric that measures what each loss measures, over the same pixels (the shaded
+#: image where the loss reads visibility: what ``compare`` reports): a fit may not make it worse
+#: than at its start. The fitted values are kept only if it does not rise, else the fit ends at its
+#: start and says so in its notes (the loss pools the lights' visibility errors by pixel count, the
+#: shaded image weighs each light by its radiance, so the two can disagree on several lights)
+GUARD_METRIC = {"rmse_penumbra": "rmse_penumbra", "rmse": "rmse", "flip": "flip_penumbra"}
+
+
+#: fractions of the way from the start to a rejected fitted point tried before keeping the start
+BACKTRACK = (0.5, 0.25, 0.125)
+
+
+def guard_metrics(loss: str, frame) -> tuple:
+    """The ``compare`` metrics a fit may not make worse than its start: the one of its loss
+    (:data:`GUARD_METRIC`) and, on a scene with several lights, also the shaded image's RMSE,
+    ``compare``'s first column (the lights' visibility errors are pooled by pixel count in the
+    loss, weighed by each light's radiance in the image)."""
+    g = [GUARD_METRIC[loss]]
+    if len(frame.lights) > 1 and "rmse" not in g:
+        g.append("rmse")
+    return tuple(g)
+
+
+def _toward(p, fitted: dict, t: float) -> dict:
+    """The point ``t`` of the way from the start to ``fitted`` (float and int parameters; the
+    others keep their fitted value), inside each window, as the preset would store it."""
+    out = {}
+    for d in p.dims:
+        a, b = p.start[d.name], fitted[d.name]
+        if d.param.kind == "float":
+            out[d.name] = _inside(d.param, _clean(float(a) + t * (float(b) - float(a))))
+        elif d.param.kind == "int":
+            out[d.name] = int(round(int(a) + t * (int(b) - int(a))))
+        else:
+            out[d.name] = b
+    return out
+
+
+def _worse(after, before) -> bool:
+    """``after`` is a worse metric value than ``before`` (NaN never counts as better)."""
+    if after is None or before is None:
+        return False
+    if math.isnan(before):
+        return False
+    return math.isnan(after) or after > before
 
 
 def default_loss(tech_name: str) -> str:
@@ -107,14 +154,9 @@ def parse_ranges(items, techniques: list[str]) -> dict:
 
 def reference_value(tech, name: str, value, frame):
     """The value a window is centred on and a "from the scene" default replaced by: the value
-    itself, except ``pcss.light_size`` 0 (= from the scene), which becomes the scene's light
-    size (the mean over the lights of ``pcss.scene_light_size``)."""
-    if tech.name == "pcss" and name == "light_size" and not isinstance(value, bool) and float(value) == 0.0:
-        s = float(np.mean([scene_light_size(l) for l in frame.lights]))
-        if s <= 0:
-            raise InputError("pcss.light_size from the scene is 0 (delta lights): give a start value with "
-                             "--set pcss.light_size=VALUE")
-        return s
+    itself, except ``resolution`` 0 (= the lights' own maps), which becomes the largest map.
+    (Light sizes need no rule: ``light_scale`` multiplies each light's own size, so 1 is the
+    scene's lights, one scale for all of them.)"""
     if name == "resolution" and tech.param(name).kind == "int" and tech.param(name).lo == 0 and int(value) == 0:
         return int(max(l.shadow_map for l in frame.lights))
     return value
@@ -122,9 +164,7 @@ def reference_value(tech, name: str, value, frame):
 
 def scene_floor(tech, name: str, ref):
     """The lower end of the window of a parameter whose 0 means "from the scene": a fitted value
-    must not become that 0 (``pcss.light_size``: 10⁻³ of the scene's size; ``resolution``: 64)."""
-    if tech.name == "pcss" and name == "light_size":
-        return 1e-3 * float(ref)
+    must not become that 0 (``resolution``: 64)."""
     if name == "resolution":
         p = tech.param(name)
         if p.kind == "int" and p.lo == 0:
@@ -201,7 +241,6 @@ def plan(tech_name: str, frame, *, params=None, method="auto", loss="rmse_penumb
 
 def execute(p: Plan, frame, truth, budget: Budget) -> dict:
     """Run one planned fit; returns the result dict (JSON-able, plus ``images``: numpy)."""
-    import drjit as dr
     obj = Objective(frame, truth, p.tech, p.loss, fixed=p.fixed)
     with KernelCounter() as counter:
         dr.sync_thread()
@@ -228,6 +267,39 @@ def execute(p: Plan, frame, truth, budget: Budget) -> dict:
     res_a = p.tech.render(frame, {**p.fixed, **fitted})
     m_b, pl_b, img_b = technique_metrics(frame, truth, res_b)
     m_a, pl_a, img_a = technique_metrics(frame, truth, res_a)
+    # never end worse than the start as ``compare`` measures it: these renders are exactly what
+    # ``compare --preset`` renders (same frame, plain values, the preset's repr round trip)
+    guards = guard_metrics(p.loss, frame)
+    bad = [g for g in guards if _worse(m_a.get(g), m_b.get(g))]
+    if bad:
+        tried = [fitted]
+        found = None
+        for t in BACKTRACK:                     # back toward the start: the loss is ≤ the start's there
+            cand = _toward(p, fitted, t)
+            if cand in tried:
+                continue
+            tried.append(cand)
+            o = obj.value(cand)                  # outside the search: not counted
+            if o > obj_before:
+                continue
+            res_c = p.tech.render(frame, {**p.fixed, **cand})
+            m_c, pl_c, img_c = technique_metrics(frame, truth, res_c)
+            if not any(_worse(m_c.get(g), m_b.get(g)) for g in guards):
+                found = (cand, o, res_c, m_c, pl_c, img_c)
+                break
+        what = ", ".join(f"{g} {m_b[g]:.6g} → {m_a[g]:.6g}" for g in bad)
+        best_txt = ", ".join(f"{k} {v}" for k, v in fitted.items())
+        if found is not None:
+            fitted, best_obj, res_a, m_a, pl_a, img_a = found
+            s.notes.append(f"the search's best point ({best_txt}) lowered the {p.loss} loss but made compare's "
+                           f"{what}: ended at {', '.join(f'{k} {v}' for k, v in fitted.items())}, part of the way "
+                           f"from the start, which is no worse in {', '.join(guards)}")
+        else:
+            s.notes.append(f"the search's best point ({best_txt}) lowered the {p.loss} loss but made compare's "
+                           f"{what}: kept the start")
+            fitted = {d.name: _clean(p.start[d.name]) for d in p.dims}
+            best_obj = obj.value(dict(p.start))
+            res_a, m_a, pl_a, img_a = res_b, m_b, pl_b, img_b
     defaults = p.tech.defaults()
     nondefault = {k: _clean(v) for k, v in p.fixed.items() if v != defaults.get(k)}
     new_per_it = [h["kernels_new"] for h in hist]

@@ -2,15 +2,14 @@
 
 Every fitted parameter is a :class:`Dim`: its declaration (:class:`~shadowlab.techniques.base.Param`),
 the window searched, its scale and the method. With r the parameter's reference value (the
-technique's default; for ``pcss.light_size`` the light size from the scene):
+technique's default, e.g. ``light_scale`` 1, each light's own size):
 
 * **log scale** when the declared range starts at lo ≥ 0 and reaches at least 1000·r above r > 0
   (the value's order of magnitude is what is unknown: ``vsm.min_variance`` [0, 0.01] with
   r = 10⁻⁶, ``msm.moment_bias`` [0, 0.1] with r = 3·10⁻⁵): window [max(lo, r/1000), hi], searched
   in u = log(x/a)/log(b/a);
 * else **linear**: the declared range, narrowed to [max(lo, r − 3|r|), min(hi, r + 3|r|)] when it
-  is wider than 10·|r| (``pcss.light_size`` [0, 100] with r = 1 → [0, 4], whose 0 means "from the
-  scene" and is replaced by 10⁻³·r: [0.001, 4]; ``hard.depth_bias``
+  is wider than 10·|r| (``light_scale`` [0, 16] with r = 1 → [0, 4]; ``hard.depth_bias``
   [−10⁶, 10⁶] with r = 16 → [−32, 64]), searched in u = (x − a)/(b − a);
 
 then widened to contain the start value. ``--range PARAM=LO:HI`` replaces the window (within the
@@ -22,7 +21,7 @@ Methods:
   u ∈ [0, 1] (so one learning rate suits every parameter), projected back into [0, 1] after each
   step. Defaults: 25 steps, learning rate 0.1 decaying exponentially to 10 % of it at the last
   step, β₁ = 0.7 (less momentum than the usual 0.9), β₂ = 0.999: over 5 scenes × 3 starts of
-  ``pcss.light_size`` (``shadowlab.fit.goals``) this was the most robust of the settings tried
+  ``pcss.light_scale`` (``shadowlab.fit.goals``) this was the most robust of the settings tried
   (β₁ 0.5–0.9, final rate 2–20 %): a rough loss (``contact``: the blocker search's taps jump as
   the search region grows, which no gradient sees) can hold Adam in a local dip 10 % away from
   the optimum with other settings. Each step is one forward render and one backward pass.
@@ -53,6 +52,9 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import drjit as dr
+import itertools
+import mitsuba as mi
 
 from ..errors import InputError
 
@@ -98,8 +100,6 @@ class Dim:
 
     def from_unit_dr(self, u):
         """Dr.Jit u ∈ [0, 1] -> x in the window (float32-safe: never outside the declared range)."""
-        import drjit as dr
-        import mitsuba as mi
         a, b = _f32_inside(self.lo, self.hi)
         # the window enters opaquely: a fit over another window reuses the compiled kernels
         lo, a, b = (dr.opaque(mi.Float, v) for v in (self.lo, a, b))
@@ -136,7 +136,7 @@ def log_scale(p, ref) -> bool:
 def window(p, ref, start, user=None, where: str = "?", floor=None) -> tuple:
     """(lo, hi, scale) searched for a float/int parameter (module docstring). ``floor``: the
     smallest value with its ordinary meaning, for parameters whose lower end means something
-    else (``pcss.light_size`` 0 and ``resolution`` 0 = "from the scene")."""
+    else (``resolution`` 0 = the lights' own maps)."""
     log = log_scale(p, ref)
     if user is not None:
         lo, hi = user
@@ -236,7 +236,6 @@ class Search:
         return o
 
     def record(self, values: dict, o: float, stage: str, param=None, grad=None):
-        import drjit as dr
         dr.sync_thread()
         kern = self.counter.take()
         if not math.isfinite(o):
@@ -266,8 +265,6 @@ class Search:
 
 def adam(s: Search, dims: list, steps: int = 25, lr: float = 0.1, beta_1: float = 0.7, decay: float = 0.1):
     """Adam on the unit-scaled ``dims`` from the current best point (module docstring)."""
-    import drjit as dr
-    import mitsuba as mi
     base = s.current
     opt = mi.ad.Adam(lr=lr, beta_1=beta_1, params={d.name: dr.opaque(mi.Float, d.to_unit(base[d.name])) for d in dims})
     for k in range(steps):
@@ -371,7 +368,6 @@ def exhaustive(s: Search, d: Dim):
 
 
 def full_grid(s: Search, dims: list, points: int):
-    import itertools
     base = s.current
     for combo in itertools.product(*[grid_values(d, points) for d in dims]):
         s.evaluate({**base, **{d.name: x for d, x in zip(dims, combo)}}, "grid")

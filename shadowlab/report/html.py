@@ -36,7 +36,7 @@ import numpy as np
 from shadowlab.errors import InputError
 from shadowlab.report import images as _im
 
-__all__ = ["build", "summary_table", "validate", "run_to_json", "to_jsonable", "higher_is_better"]
+__all__ = ["build", "summary_table", "stats_tables", "validate", "run_to_json", "to_jsonable", "higher_is_better"]
 
 OUTPUT_FILES = ("index.html", "summary.md", "metrics.json")
 OUTPUT_DIRS = ("img",)
@@ -347,6 +347,54 @@ code {{ font-size: .9em; }}
 """
 
 
+def _scalar_stat(v) -> bool:
+    return isinstance(v, (numbers.Number, str, np.generic)) or v is None
+
+
+def stats_tables(stats) -> list[tuple[str, list[str], list[list[str]]]]:
+    """The per-light and per-map stats of one technique as tables ``(title, columns, rows)``:
+    "lights" (one row per light, its scalar stats) and, where the technique reports maps
+    (``stats["lights"][light]["maps"]``: cascades, tiles, cube maps), "maps" (one row per
+    map of each light). Empty for stats without the ``lights`` layout.
+
+    >>> st = {"lights": {"key": {"resolution": 512, "maps": [{"near": 0.5, "far": 4.0}, {"near": 4.0, "far": 9.0}]}}}
+    >>> [(t, c, r) for t, c, r in stats_tables(st)]  # doctest: +NORMALIZE_WHITESPACE
+    [('lights', ['light', 'resolution', 'maps'], [['key', '512', '2']]),
+     ('maps', ['light', 'map', 'near', 'far'], [['key', '0', '0.5', '4'], ['key', '1', '4', '9']])]
+    """
+    lights = stats.get("lights") if isinstance(stats, Mapping) else None
+    if not isinstance(lights, Mapping) or not lights:
+        return []
+    cols: list[str] = []
+    for st in lights.values():
+        cols += [k for k, v in st.items() if k != "maps" and _scalar_stat(v) and k not in cols]
+    has_maps = any(st.get("maps") for st in lights.values())
+    out = [("lights", ["light", *cols] + (["maps"] if has_maps else []),
+            [[str(ln), *[_fmt(st.get(c)) if not isinstance(st.get(c), str) else st[c] for c in cols]]
+             + ([str(len(st.get("maps") or ()))] if has_maps else []) for ln, st in lights.items()])]
+    if has_maps:
+        mcols: list[str] = []
+        for st in lights.values():
+            for m in st.get("maps") or ():
+                mcols += [k for k, v in m.items() if _scalar_stat(v) and k not in mcols]
+        rows = [[str(ln), str(i), *[_fmt(m.get(c)) if not isinstance(m.get(c), str) else m[c] for c in mcols]]
+                for ln, st in lights.items() for i, m in enumerate(st.get("maps") or ())]
+        out.append(("maps", ["light", "map", *mcols], rows))
+    return out
+
+
+def stats_markdown(run: Mapping) -> str:
+    """Markdown of :func:`stats_tables` for every technique of the run that has them."""
+    parts = []
+    for name, t in run["techniques"].items():
+        for title, cols, rows in stats_tables(t.get("stats") or {}):
+            parts += [f"### {_md_escape(name)}: stats per {title[:-1]}", "",
+                      "| " + " | ".join(_md_escape(c) for c in cols) + " |", "|" + "---|" * len(cols)]
+            parts += ["| " + " | ".join(_md_escape(c) for c in r) + " |" for r in rows]
+            parts.append("")
+    return "\n".join(parts)
+
+
 def _slug(s: str) -> str:
     return (re.sub(r"[^A-Za-z0-9_-]+", "-", s).strip("-") or "x")[:40]
 
@@ -481,6 +529,11 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
             f"<td>{_img_tag(sef, f'signed error {name} shaded')}{_legend(shaded_scale)}</td></tr>"
         )
         p.append("</table>")
+        for title, cols, rows in stats_tables(t.get("stats") or {}):
+            p.append(f'<p class="note">stats per {_e(title[:-1])}</p><table class="metrics"><thead><tr>'
+                     + "".join(f"<th>{_e(c)}</th>" for c in cols) + "</tr></thead><tbody>"
+                     + "".join("<tr>" + "".join(f"<td>{_e(c)}</td>" for c in r) + "</tr>" for r in rows)
+                     + "</tbody></table>")
 
     extra = {k: v for k, v in run.items() if k not in ("scene", "resolution", "reference", "lights", "techniques", "images")}
     if extra:
@@ -549,6 +602,9 @@ def build(out_dir, run: Mapping) -> Path:
             raise InputError(f"report output {out / f} is a directory; remove it or choose another --out")
     json_text = json.dumps(run_to_json(run), indent=2, allow_nan=False) + "\n"
     md_text = summary_table(run) + "\n"
+    st_md = stats_markdown(run)
+    if st_md:
+        md_text += "\n## Stats per light and map\n\n" + st_md
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.building-"))

@@ -31,6 +31,7 @@ trace loop of ``traced`` exactly when the previous ray finished.
 from __future__ import annotations
 
 import drjit as dr
+import mitsuba as mi
 
 from ..render.shading import _hash32
 from ..scene.lights import light_sphere
@@ -41,7 +42,6 @@ ESTIMATORS = ("edge", "traced", "separable")
 
 def _u2(idx, i, k, seed_hash):
     """Stratified 2-D sample i of an k×k grid for point idx (TEA hashes; stateless)."""
-    import mitsuba as mi
     a, b = mi.sample_tea_32(idx, i ^ seed_hash)
     ua = mi.Float(a >> 8) * (1.0 / 16777216.0)
     ub = mi.Float(b >> 8) * (1.0 / 16777216.0)
@@ -62,7 +62,6 @@ def _light_sample(emitter, si, o, nrm, valid, idx, i, k, seed_hash):
 
 @dr.syntax
 def _edge_loop(emitter, si, o, nrm, valid, idx, k, seed_hash, x_min, g, f_min, v, found):
-    import mitsuba as mi
     n = dr.width(o)
     fv = dr.zeros(mi.Float, n)
     fs = dr.zeros(mi.Float, n)
@@ -82,7 +81,6 @@ def _edge_loop(emitter, si, o, nrm, valid, idx, k, seed_hash, x_min, g, f_min, v
 
 @dr.syntax
 def _traced_loop(sdf, emitter, si, o, nrm, valid, idx, k, seed_hash, eps, i_max):
-    import mitsuba as mi
     n = dr.width(o)
     kk = k * k
     j = dr.zeros(mi.UInt32, n)
@@ -119,7 +117,6 @@ def visibility(frame, light, sdf, o, R0, *, estimator: str = "edge", samples: in
     (module docstring). ``o``: shading points off the surface (mi.Vector3f), ``R0``: their
     surface-sphere radius; ``samples``: s of the s×s light samples. Returns (mi.Float, dict of
     per-point Dr.Jit AOVs)."""
-    import mitsuba as mi
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator must be one of {ESTIMATORS}, not {estimator!r}")
     gb = frame.gbuffer

@@ -12,7 +12,12 @@ the reports all read that declaration.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+import drjit as dr
+import importlib
+import mitsuba as mi
+import pkgutil
 
 from ..errors import InputError
 
@@ -83,17 +88,105 @@ class Param:
 @dataclass
 class ShadowResult:
     """What a technique returns. ``visibility[light]``: flat per-G-buffer-point Dr.Jit Float in
-    [0, 1] (differentiable where the technique is); ``aovs``: name -> (H, W[, C]) numpy image
-    for debugging (penumbra width, fallback mask, ...); ``stats``: JSON-able numbers."""
+    [0, 1] (differentiable where the technique is); ``aovs``: ``<light>.<aov>`` -> (H, W[, C])
+    numpy image for debugging (penumbra width, fallback mask, ...); ``stats``: JSON-able numbers,
+    laid out by :meth:`Technique.render`."""
 
     visibility: dict
     aovs: dict = field(default_factory=dict)
     stats: dict = field(default_factory=dict)
 
 
+@dataclass
+class Pooled:
+    """A per-light stat that is a mean over points: ``total / count`` per light (or ``value``
+    where given) and ``Σ total / Σ count`` over the lights as ``stats[name]["all"]``."""
+
+    total: float
+    count: int
+    value: float | None = None
+
+    def mean(self) -> float:
+        return float(self.value) if self.value is not None else (self.total / self.count if self.count else 0.0)
+
+
+@dataclass
+class LightResult:
+    """What a family's per-light part (:meth:`Technique.render_light`) returns.
+
+    ``visibility``: flat Dr.Jit Float over the G-buffer points; ``aovs``: AOV name -> flat Dr.Jit
+    Float (detached and evaluated by the base, then stored as ``<light>.<name>`` images);
+    ``active``: optional Bool mask: outside it the base sets visibility 1 and every AOV 0;
+    ``stats``: JSON-able per-light numbers (a :class:`Pooled` value is a mean over points);
+    ``maps``: one JSON-able dict per shadow map / tile of the light (a light with cascades or
+    tiles has several; each dict holds that map's own numbers, e.g. resolution, near, far)."""
+
+    visibility: object
+    aovs: dict = field(default_factory=dict)
+    active: object = None
+    stats: dict = field(default_factory=dict)
+    maps: list = field(default_factory=list)
+
+
+class RenderContext:
+    """Per-render state the base hands to a family's :meth:`~Technique.prepare` and
+    :meth:`~Technique.render_light`: the resolved ``values`` and :meth:`scalar`; a family
+    stores what it prepares once per render as attributes."""
+
+    def __init__(self, technique, values: dict):
+        self.technique, self.values = technique, values
+        self._scalars: dict = {}
+
+    def scalar(self, name: str):
+        """Parameter ``name`` as a Dr.Jit Float of width 1 that enters kernels opaquely (a new
+        value reuses the compiled kernel); a Dr.Jit input is used as is (made opaque, gradients
+        kept), so ``dr.backward`` of a loss on the visibility reaches it."""
+        if name not in self._scalars:
+            self._scalars[name] = opaque_scalar(self.values[name])
+        return self._scalars[name]
+
+
+def opaque_scalar(v):
+    """``v`` as an opaque Dr.Jit Float: a Dr.Jit array as is (made opaque), a number by ``dr.opaque``."""
+    if isinstance(v, dr.ArrayBase):
+        dr.make_opaque(v)
+        return v
+    return dr.opaque(mi.Float, float(v))
+
+
+def scaled_size(scale, size: float):
+    """(``scale`` × ``size`` as an opaque Dr.Jit Float of width 1, its value as a float): the
+    :data:`LIGHT_SCALE` rule. A Dr.Jit ``scale`` stays in the expression (gradients reach it);
+    a number is multiplied in double precision first, so ``scale`` 1 gives ``size`` exactly."""
+    if isinstance(scale, dr.ArrayBase):
+        return scale * float(size), float(dr.detach(scale)[0]) * float(size)
+    v = float(scale) * float(size)
+    return dr.opaque(mi.Float, v), v
+
+
+#: The one light-size convention of every family: a multiplier of each light's own physical
+#: size (``LightSpec.physical_size``), so one value fits every light of a scene in proportion
+#: to its size. What "size" means to a family's model (the side of an equal-area square, a
+#: sphere's radius, ...) its module says; families reuse this declaration (``dataclasses.replace``
+#: only for ``source`` and ``differentiable``).
+LIGHT_SCALE = Param("light_scale", 1.0, "float", 0.0, 16.0, "× the light's size", True, source="",
+                    doc="multiplier of each light's own size (1 = the scene's light, 0 = a point light); "
+                        "the family's model of the light is scaled by it")
+
+
+def light_scale_param(source: str, differentiable: bool = True, doc: str = "") -> Param:
+    """:data:`LIGHT_SCALE` with a family's ``source``, differentiability and, optionally, the
+    family's sentence on what it scales (appended to the shared text)."""
+    return replace(LIGHT_SCALE, source=source, differentiable=differentiable,
+                   doc=LIGHT_SCALE.doc + (f": {doc}" if doc else ""))
+
+
 class Technique:
     """Base class. Subclasses set ``name``, ``title``, ``source`` and ``params`` and implement
-    :meth:`render`; ``render`` must be pure (same inputs, same bits)."""
+    the per-light part :meth:`render_light` (and, optionally, :meth:`prepare`, once per render,
+    :meth:`light_stats`, after a light is evaluated, and :meth:`summarise`, the render's global
+    stats); :meth:`render` does the rest, as a Mitsuba integrator supplies ``sample`` and its
+    base class the render loop. ``render`` must be pure (same inputs, same bits)."""
 
     name: str = ""
     title: str = ""
@@ -112,14 +205,96 @@ class Technique:
         return {p.name: p.default for p in self.params}
 
     def resolve(self, overrides: dict | None = None) -> dict:
-        """Defaults updated with ``overrides`` (validated; unknown names raise InputError)."""
+        """Defaults updated with ``overrides`` (validated; unknown names raise InputError).
+
+        A ``differentiable`` parameter may be a Dr.Jit Float of width 1 (e.g. with gradients
+        enabled): its value is validated like a number and the array itself is kept, so that
+        gradients flow through the technique; any other parameter must be a plain value."""
         values = self.defaults()
+        arrays = {}
         for k, v in (overrides or {}).items():
-            values[k] = self.param(k).parse(v, self.name)
+            p = self.param(k)
+            if _is_drjit(v):
+                if not p.differentiable:
+                    diff = ", ".join(q.name for q in self.params if q.differentiable) or "none"
+                    raise InputError(f"{self.name}.{k}: only differentiable parameters ({diff}) may be Dr.Jit "
+                                     f"arrays; pass a number")
+                if dr.width(v) != 1:
+                    raise InputError(f"{self.name}.{k}: a Dr.Jit parameter must hold one value, got {dr.width(v)}")
+                values[k] = p.parse(float(dr.detach(v)[0]), self.name)
+                arrays[k] = v
+            else:
+                values[k] = p.parse(v, self.name)
+        values.update(arrays)
         return values
 
-    def render(self, frame, params: dict) -> ShadowResult:  # pragma: no cover - interface
+    # -- the family's part ---------------------------------------------------------------------
+    def prepare(self, frame, values: dict, ctx: RenderContext) -> None:
+        """Once per render, before the lights: check the frame, build what every light shares
+        (opaque biases, tap tables, ...) and store it on ``ctx``."""
+
+    def render_light(self, frame, light, values: dict, ctx: RenderContext) -> LightResult:  # pragma: no cover
+        """The family's per-light part: visibility, AOVs and stats of one light."""
         raise NotImplementedError
+
+    def light_stats(self, frame, light, values: dict, ctx: RenderContext, result: LightResult) -> dict:
+        """Per-light stats that need the evaluated arrays (``result.visibility``, ``result.aovs``
+        and ``result.active`` hold them, evaluated); merged over ``result.stats``."""
+        return {}
+
+    def summarise(self, frame, values: dict, ctx: RenderContext, lights: dict) -> dict:
+        """The render's global stats, from the per-light ones (``lights[name]``, with ``maps``)."""
+        return {}
+
+    # -- the loop ------------------------------------------------------------------------------
+    def render(self, frame, params: dict | None = None) -> ShadowResult:
+        """Resolve ``params``, :meth:`prepare`, then per light :meth:`render_light`, evaluate
+        visibility and AOVs together (the stage boundary) and gather the stats.
+
+        Stats layout: ``stats["lights"][light]`` holds the light's stats and, where the family
+        reports them, ``maps`` (one dict per shadow map or tile); every per-light stat is also
+        ``stats[stat][light]`` (plus ``["all"]``, pooled over lights, for a :class:`Pooled`
+        mean); the family's global stats (:meth:`summarise`) sit at the top level."""
+        values = self.resolve(params)
+        ctx = RenderContext(self, values)
+        self.prepare(frame, values, ctx)
+        gb = frame.gbuffer
+        vis, aovs, lights, pools = {}, {}, {}, {}
+        for light in frame.lights:
+            r = self.render_light(frame, light, values, ctx)
+            v = r.visibility
+            extra = {k: dr.detach(a) for k, a in r.aovs.items()}
+            if r.active is not None:
+                v = dr.select(r.active, v, 1.0)
+                extra = {k: dr.select(r.active, a, 0.0) for k, a in extra.items()}
+            dr.eval(v, *extra.values(), *([r.active] if r.active is not None else []))
+            r.visibility, r.aovs = v, extra
+            vis[light.name] = v
+            for k, a in extra.items():
+                aovs[f"{light.name}.{k}"] = gb.to_image(a)
+            st = {**r.stats, **self.light_stats(frame, light, values, ctx, r)}
+            for k, s in st.items():
+                if isinstance(s, Pooled):
+                    tot, cnt = pools.get(k, (0.0, 0))
+                    pools[k] = (tot + s.total, cnt + s.count)
+                    st[k] = s.mean()
+            if r.maps:
+                st["maps"] = [dict(m) for m in r.maps]
+            lights[light.name] = st
+        stats = dict(self.summarise(frame, values, ctx, lights))
+        for ln, st in lights.items():
+            for k, s in st.items():
+                if k != "maps":
+                    stats.setdefault(k, {})[ln] = s
+        for k, (tot, cnt) in pools.items():
+            stats[k]["all"] = tot / cnt if cnt else 0.0
+        stats["lights"] = lights
+        return ShadowResult(visibility=vis, aovs=aovs, stats=stats)
+
+
+def _is_drjit(v) -> bool:
+    mod = type(v).__module__ or ""
+    return mod.startswith("drjit") or mod.startswith("mitsuba")
 
 
 _REGISTRY: dict = {}
@@ -175,9 +350,6 @@ def _module_rank(name: str):
 def _load_all():
     """Import every technique module of this package: importing a module registers its
     techniques, so a new family needs no edit here."""
-    import importlib
-    import pkgutil
-    from pathlib import Path
     mods = [m.name for m in pkgutil.iter_modules([str(Path(__file__).parent)]) if not m.name.startswith("_")
             and m.name != "base"]
     mods.sort(key=_module_rank)

@@ -1,5 +1,5 @@
-"""Moment shadow maps (``msm``), Hamburger 4MSM: Peters & Klein, "Moment Shadow Mapping",
-I3D 2015. 003_b5589b67cce60746.txt §5.1 lists MSM among the implemented techniques (the
+"""Moment shadow maps (``msm``), Hamburger 4MSM [Peters 2015] (Peters & Klein, "Moment Shadow
+Mapping", I3D 2015). [Buljan 2020, §5.1] lists MSM among the implemented techniques (the
 thesis used the authors' HLSL, with "one parameter for light-leak reduction different from
 VSM's"); it does not derive it, so the algorithm follows the paper:
 

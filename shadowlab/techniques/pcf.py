@@ -1,4 +1,4 @@
-"""Percentage-closer filtering (``pcf``) with the kernels of 003_b5589b67cce60746.txt §3.2.
+"""Percentage-closer filtering (``pcf``) with the kernels of [Buljan 2020, §3.2].
 
 Filter the results of the depth comparison, not the depths (§3.1 shows why the latter stays
 binary)::
@@ -316,13 +316,10 @@ class PCF(ShadowMapTechnique):
         vis = _accumulate(view, rec, bias, table, count, s, rot, bilinear)
         return dr.clip(vis, 0.0, 1.0)
 
-    def render(self, frame, params: dict | None = None):
-        res = super().render(frame, params)
-        values = self.resolve(params)
+    def summarise(self, frame, values, ctx, lights):
         k = len(taps(values["pattern"], int(values["kernel"]), 0.0, int(values["rotated_samples"]))[1])
-        res.stats["taps_per_point"] = k
-        res.stats["depth_tests_per_point"] = 4 * k if values["bilinear"] else k
-        return res
+        return {**super().summarise(frame, values, ctx, lights), "taps_per_point": k,
+                "depth_tests_per_point": 4 * k if values["bilinear"] else k}
 
 
 __doc__ += "\n\nParameters of ``pcf`` (generated from the declaration):\n\n" + param_table_markdown(PCF)

@@ -1,8 +1,9 @@
-"""Percentage-closer soft shadows (``pcss``), 003_b5589b67cce60746.txt §3.6 (Code A.9).
+"""Percentage-closer soft shadows (``pcss``) [Buljan 2020, §3.6, Code A.9].
 
 PCSS is PCF whose filter width follows the estimated penumbra. Per shading point with
 light-space depth z̃ (the receiver's linear depth, ``LightView.lookup()['z']`` of the
-normal-offset point) and the light size w_light = ``light_size``, the three steps of §3.6:
+normal-offset point) and the light size w_light (``light_scale`` × the light's own size, see
+below), the three steps of §3.6:
 
 1. *blocker search* (Računanje zaklonjenosti): over the square region of full width
    ``w_search = (z̃ − z_near)/z̃ · w_light`` (near-plane units, z_near = the light camera's near
@@ -31,7 +32,7 @@ same formulas per face; taps are clamped to the receiver's face (no seam crossin
 that straddle a cube edge are cut there.
 
 Orthographic light cameras (directional lights) have no light position: the light is a source at
-infinity of angular size ``light_size`` (radians), every depth is a distance along the light's
+infinity of angular size w_light (radians), every depth is a distance along the light's
 direction, and similar triangles with parallel rays give
 
     w_search   = (z̃ − z_near) · tan(w_light)      (world units = texels · 2·half_extent/N)
@@ -40,13 +41,16 @@ direction, and similar triangles with parallel rays give
 
 (z_near = the orthographic camera's near plane, which lies outside the scene's bounding sphere).
 
-``light_size`` mapping. ``light_size`` is in world units (radians for directional lights);
-0, the default, takes each light's size from the scene: ``LightSpec.physical_size`` times a
-per-kind factor, the side of the square with the light's area (for directional lights, with its
-angular area). PCSS models a square light (a square filter), and a square of the same area has
-nearly the same edge ramp as the light:
+Light size. ``light_scale`` is the one light-size convention of every family
+(:data:`~shadowlab.techniques.base.LIGHT_SCALE`): a multiplier of each light's own size, so
+w_light = ``light_scale`` × :func:`scene_light_size` per light, in world units (radians for
+directional lights), and one value fits every light of a scene in proportion to its size;
+``light_scale`` 1 (the default) is the scene's light. A light's size is
+``LightSpec.physical_size`` times a per-kind factor, the side of the square with the light's
+area (for directional lights, with its angular area). PCSS models a square light (a square
+filter), and a square of the same area has nearly the same edge ramp as the light:
 
-| light kind | ``LightSpec.physical_size`` | × | ``light_size`` from the scene |
+| light kind | ``LightSpec.physical_size`` | × | w_light at ``light_scale`` = 1 |
 |---|---|---|---|
 | rect w × h | √(w·h) | 1 | √(w·h) (a square light exactly) |
 | disk, spot, radius r | 2r (diameter) | √π/2 | √π·r ≈ 1.772 r |
@@ -56,7 +60,7 @@ nearly the same edge ramp as the light:
 For a disk the equal-area square's 10–90 % edge ramp is 0.8·√π·r = 1.418 r against the disk's
 1.374 r (a square of side 2r, the diameter, would give 1.6 r). For w ≠ h the true ramp is w or h
 depending on the edge's direction; √(w·h) is their geometric mean. Delta lights (r = 0, θ = 0)
-get 0: a hard shadow widened only by ``min_filter``. An explicit value applies to every light.
+get 0 at any ``light_scale``: a hard shadow widened only by ``min_filter``.
 
 Sampling patterns (fixed, part of the technique's definition; uploaded as data, so each count
 compiles its own kernel once and nothing else does):
@@ -93,10 +97,10 @@ is a property of that comparison rather than of PCSS; ``--set pcss.receiver_plan
 gives the source's algorithm.
 
 Differentiability. Through the bilinear weights the visibility is a continuous, piecewise smooth
-function of the tap positions, hence of ``light_size``: ``light_size`` is ``differentiable``.
-Pass it as a Dr.Jit ``mi.Float`` of width 1 with gradients enabled (the convention of the
-prefiltered techniques): it is used as is, in world units (radians for directional lights; the
-0 = "from the scene" rule does not apply; start from :func:`scene_light_size`), and
+function of the tap positions, hence of w_light: ``light_scale`` is ``differentiable``.
+Pass it as a Dr.Jit ``mi.Float`` of width 1 with gradients enabled (the convention of every
+family, :meth:`~shadowlab.techniques.base.Technique.resolve`): w_light = ``light_scale`` ×
+:func:`scene_light_size` stays in the expression, and
 ``dr.backward`` of a loss on the visibility reaches it through both the search region and the
 filter width (``tests/test_pcss.py`` compares it with central differences). As a plain number it
 enters through ``dr.opaque``. ``min_filter`` (a ``max``) and the biases (steps) are not
@@ -107,8 +111,8 @@ Measured on ``parallel_planes`` (128², 1024² fp32 map, committed reference, de
 ``tests/test_pcss.py``): penumbra RMSE of the shaded image 0.0092 (``hard`` 0.397, ``pcf``
 default 3×3 0.341), of the visibility 0.0067; 10–90 % penumbra width on the floor 0.801 world
 units against the prediction 0.8·w_penumbra = 0.800 (truth fit 0.78, closed form 0.8); with
-``light_size`` 0.5 / 1 / 1.5 the widths are 0.400 / 0.801 / 1.200 and the visibility is within
-RMSE ≤ 0.001 of the closed form for that light size. With ``light_size`` → 0 the result equals
+``light_scale`` 0.5 / 1 / 1.5 (the light's side is 1) the widths are 0.400 / 0.801 / 1.200 and the visibility is within
+RMSE ≤ 0.001 of the closed form for that light size. With ``light_scale`` → 0 the result equals
 ``hard`` at all but 0.8 % of the pixels (the one-texel bilinear ramp of ``min_filter``); with
 ``pcf_samples`` 1 and ``min_filter`` 0 on every pixel.
 
@@ -132,8 +136,9 @@ import numpy as np
 
 from ..errors import InputError
 from ._random import uniform as _uniform
-from .base import Param, ShadowResult, param_table_markdown, register
-from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, finish, opaque_bias, receiver, stored_depth, texel_index,
+from .base import LightResult, Pooled, light_scale_param, param_table_markdown, register, scaled_size
+from .base import Param
+from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, map_entry, map_stats, receiver, stored_depth, texel_index,
                          view_for)
 
 SOURCE = "003 §3.6"
@@ -199,15 +204,14 @@ SIZE_FACTOR = {"rect": 1.0, "disk": math.sqrt(math.pi) / 2, "spot": math.sqrt(ma
 
 
 def scene_light_size(light) -> float:
-    """The ``light_size`` a light gets when the parameter is 0: ``physical_size`` × the factor
-    of its kind (the module docstring's table: the side of the equal-area square)."""
+    """w_light of a light at ``light_scale`` 1: ``physical_size`` × the factor of its kind
+    (the module docstring's table: the side of the equal-area square)."""
     return SIZE_FACTOR[light.kind] * light.physical_size
 
 
 PCSS_PARAMS = (
-    Param("light_size", 0.0, "float", 0.0, 100.0, "world units (radians: directional)", True, source=SOURCE,
-          doc="w_light: side of the square light PCSS models; 0 = from the scene, physical size × factor: "
-              "rect √(w·h); disk/sphere/spot/point √π·r; directional √π/2·angular diameter (equal-area square)"),
+    light_scale_param(SOURCE, doc="w_light = light_scale × the side of the light's equal-area square: rect √(w·h); "
+                                  "disk/sphere/spot/point √π·r; directional √π/2·angular diameter (radians)"),
     Param("blocker_samples", 32, "choice", units="taps", choices=BLOCKER_COUNTS, source=SOURCE,
           doc="taps of the blocker search over the w_search square (fixed best-candidate Poisson set; bilinear "
               "taps; 16–25 in the source)"),
@@ -339,41 +343,16 @@ class PCSS(ShadowMapTechnique):
                "width; bilinear taps, so the light size is differentiable")
     params = PCSS_PARAMS + BIAS_PARAMS
 
-    def resolve(self, overrides: dict | None = None) -> dict:
-        """As every technique, but a Dr.Jit ``light_size`` (width 1) is kept as is so that
-        gradients flow through it; other parameters must be plain values."""
-        overrides = dict(overrides or {})
-        jit = None
-        for k, v in list(overrides.items()):
-            if isinstance(v, dr.ArrayBase):
-                p = self.param(k)
-                if not p.differentiable:
-                    raise InputError(f"{self.name}.{k}: only differentiable parameters (light_size) may be "
-                                     f"Dr.Jit arrays; pass a number")
-                if dr.width(v) != 1:
-                    raise InputError(f"{self.name}.{k}: a Dr.Jit parameter must hold one value, got {dr.width(v)}")
-                val = float(dr.detach(v)[0])
-                p.parse(val, self.name)
-                overrides[k] = val
-                jit = v
-        values = super().resolve(overrides)
-        if jit is not None:
-            values["light_size"] = jit
-        return values
-
     def light_size(self, light, values: dict):
-        """``light_size`` for ``light`` as a Dr.Jit Float: a Dr.Jit input as is, else opaque
-        (0 = :func:`scene_light_size`)."""
-        ls = values["light_size"]
-        if isinstance(ls, dr.ArrayBase):
-            val, out = float(dr.detach(ls)[0]), ls
-        else:
-            val = float(ls) if float(ls) > 0 else scene_light_size(light)
-            out = dr.opaque(mi.Float, val)
+        """w_light of ``light`` as a Dr.Jit Float: ``light_scale`` × :func:`scene_light_size`
+        (a Dr.Jit ``light_scale`` stays in the expression, a number enters opaquely)."""
+        w, val = scaled_size(values["light_scale"], scene_light_size(light))
         if light.kind == "directional" and val >= 0.5 * math.pi:
-            raise InputError(f"pcss.light_size={val:g} rad for directional light {light.name!r}: an angular size "
-                             f"must be below π/2 (the sun's disk is 0.0093 rad)")
-        return out
+            sc = values["light_scale"]
+            sc = float(dr.detach(sc)[0]) if isinstance(sc, dr.ArrayBase) else float(sc)
+            raise InputError(f"pcss.light_scale={sc:g} gives w_light = {val:g} rad for directional light "
+                             f"{light.name!r}: an angular size must be below π/2 (the sun's disk is 0.0093 rad)")
+        return w
 
     def pcss(self, frame, view, rec, bias, values, w_light):
         """The three steps of §3.6 for the receivers ``rec``; returns (visibility, dict of AOVs)."""
@@ -414,50 +393,31 @@ class PCSS(ShadowMapTechnique):
                 "blocker_count": dr.select(act, cnt, 0.0), "search_texels": dr.select(act, w_search, 0.0)}
         return vis, aovs
 
-    def filter(self, view, rec, bias, values):  # pragma: no cover - render() does the work
-        raise NotImplementedError("pcss renders through PCSS.render (it needs the frame's normals)")
+    def filter(self, view, rec, bias, values):  # pragma: no cover - render_light() does the work
+        raise NotImplementedError("pcss renders through PCSS.render_light (it needs the frame's normals)")
 
-    def render(self, frame, params: dict | None = None) -> ShadowResult:
-        values = self.resolve(params)
-        bias = opaque_bias(values)
-        gb = frame.gbuffer
+    def render_light(self, frame, light, values, ctx):
+        view = view_for(frame, light.name, values)
+        rec = receiver(frame, view, ctx.bias)
+        w_light = self.light_size(light, values)
+        v, extra = self.pcss(frame, view, rec, ctx.bias, values, w_light)
+        _, _, b = stored_depth(view, rec["face"], texel_index(rec["u"]), texel_index(rec["v"]), ctx.bias)
+        return LightResult(v, {"texel": rec["texel"], "receiver_bias": rec["zbias"], "depth_bias": b, **extra},
+                           active=rec["active"], maps=[map_entry(view)],
+                           stats={**map_stats(view), "light_size": float(dr.detach(w_light)[0])})
+
+    def light_stats(self, frame, light, values, ctx, result):
         nb, npcf = int(values["blocker_samples"]), int(values["pcf_samples"])
-        vis, aovs = {}, {}
-        stats = {"shadow_map_texels": 0, "resolution": {}, "depth_bits": {}, "faces": {}, "light_size": {},
-                 "blocker_samples": nb, "pcf_samples": npcf, "texels_per_sample": 4,
-                 "receiver_plane": bool(values["receiver_plane"]), "samples_per_pixel": {}}
-        taps, points = 0.0, 0
-        for light in frame.lights:
-            view = view_for(frame, light.name, values)
-            rec = receiver(frame, view, bias)
-            w_light = self.light_size(light, values)
-            v, extra = self.pcss(frame, view, rec, bias, values, w_light)
-            v = finish(v, rec)
-            _, _, b = stored_depth(view, rec["face"], texel_index(rec["u"]), texel_index(rec["v"]), bias)
-            texel = dr.select(rec["active"], rec["texel"], 0.0)
-            zb = dr.select(rec["active"], rec["zbias"], 0.0)
-            b = dr.select(rec["active"], b, 0.0)
-            extra = {k: dr.detach(a) for k, a in extra.items()}
-            dr.eval(v, texel, zb, b, *extra.values())
-            vis[light.name] = v
-            aovs[f"{light.name}.texel"] = gb.to_image(texel)
-            aovs[f"{light.name}.receiver_bias"] = gb.to_image(zb)
-            aovs[f"{light.name}.depth_bias"] = gb.to_image(b)
-            for k, a in extra.items():
-                aovs[f"{light.name}.{k}"] = gb.to_image(a)
-            active = rec["active"].numpy()
-            found = extra["blocker_count"].numpy() > 0
-            n_act = int(active.sum())
-            t = float(nb * n_act + npcf * int((found & active).sum()))
-            stats["samples_per_pixel"][light.name] = t / n_act if n_act else 0.0
-            taps, points = taps + t, points + n_act
-            stats["shadow_map_texels"] += view.nfaces * view.res * view.res
-            stats["resolution"][light.name] = view.res
-            stats["depth_bits"][light.name] = view.bits
-            stats["faces"][light.name] = view.nfaces
-            stats["light_size"][light.name] = float(dr.detach(w_light)[0])
-        stats["samples_per_pixel"]["all"] = taps / points if points else 0.0
-        return ShadowResult(visibility=vis, aovs=aovs, stats=stats)
+        active = result.active.numpy()
+        found = result.aovs["blocker_count"].numpy() > 0
+        n_act = int(active.sum())
+        t = float(nb * n_act + npcf * int((found & active).sum()))
+        return {"samples_per_pixel": Pooled(t, n_act)}
+
+    def summarise(self, frame, values, ctx, lights):
+        return {**super().summarise(frame, values, ctx, lights), "blocker_samples": int(values["blocker_samples"]),
+                "pcf_samples": int(values["pcf_samples"]), "texels_per_sample": 4,
+                "receiver_plane": bool(values["receiver_plane"])}
 
 
 __doc__ += "\n\nParameters of ``pcss`` (generated from the declaration):\n\n" + param_table_markdown(PCSS)

@@ -1,5 +1,5 @@
 """Prefiltered shadow maps: the machinery that ``vsm``, ``esm``, ``evsm`` and ``msm`` share
-(003_b5589b67cce60746.txt §3.3–§3.5; moment shadow maps: Peters & Klein 2015).
+([Buljan 2020, §3.3–§3.5]; moment shadow maps: [Peters 2015]).
 
 A prefiltered technique does not filter depth *comparisons* (PCF, §3.2) but stores functions
 of depth ("moments") that can be blurred before the lookup, because the visibility estimate is
@@ -73,8 +73,9 @@ import drjit as dr
 import mitsuba as mi
 
 from ..errors import InputError
-from .base import Param, ShadowResult
-from .shadow_map import BIAS_PARAMS, ShadowMapTechnique, depth_test, finish, opaque_bias, receiver, view_for
+from .base import LightResult, Param, opaque_scalar
+from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, depth_test, finish, map_entry, map_stats, receiver,
+                         view_for)
 
 SOURCE = "003 §3.3"
 KERNEL_MAX = 31
@@ -117,11 +118,7 @@ BLEED = Param("bleed", 0.0, "float", 0.0, 0.95, "", True, source="003 §3.3",
 def scalar(values: dict, name: str):
     """Parameter ``name`` as an opaque mi.Float. A Dr.Jit array passed in is used as is (made
     opaque, gradients kept), so gradients enabled on it flow through the technique."""
-    v = values[name]
-    if isinstance(v, dr.ArrayBase):
-        dr.make_opaque(v)
-        return v
-    return dr.opaque(mi.Float, float(v))
+    return opaque_scalar(values[name])
 
 
 def bias_values(values: dict) -> dict:
@@ -372,23 +369,6 @@ class PrefilteredTechnique(ShadowMapTechnique):
 
     channels: int = 1
 
-    def resolve(self, overrides: dict | None = None) -> dict:
-        overrides = dict(overrides or {})
-        arrays = {}
-        for k, v in list(overrides.items()):
-            if isinstance(v, dr.ArrayBase):
-                p = self.param(k)
-                if not p.differentiable:
-                    raise InputError(f"{self.name}.{k}: only differentiable parameters may be Dr.Jit "
-                                     f"arrays; pass a number")
-                if dr.width(v) != 1:
-                    raise InputError(f"{self.name}.{k}: a Dr.Jit parameter must hold one value, got {dr.width(v)}")
-                overrides[k] = float(dr.detach(v)[0])          # validated below like a number
-                arrays[k] = v
-        values = super().resolve(overrides)
-        values.update(arrays)
-        return values
-
     def channel_count(self, values) -> int:
         """Moment channels per texel (for the stats: memory of the prefiltered maps)."""
         return self.channels
@@ -397,34 +377,21 @@ class PrefilteredTechnique(ShadowMapTechnique):
         """Return (visibility, {aov name: flat Float}, {stat name: number})."""
         raise NotImplementedError
 
-    def render(self, frame, params: dict | None = None) -> ShadowResult:
-        values = self.resolve(params)
-        bias = opaque_bias(bias_values(values))
-        gb = frame.gbuffer
+    def bias_values(self, values: dict) -> dict:
+        return bias_values(values)
+
+    def render_light(self, frame, light, values, ctx):
         n = int(values.get("kernel", 1))
-        vis, aovs = {}, {}
-        stats = {"shadow_map_texels": 0, "resolution": {}, "depth_bits": {}, "faces": {},
-                 "moment_channels": self.channel_count(values), "moment_bytes": {},
-                 "blur_taps_per_texel": 2 * n if n > 1 else 0}
-        for light in frame.lights:
-            view = view_for(frame, light.name, values)
-            rec = prepare_receiver(frame, view, bias)
-            fp = footprint(view, rec, n)
-            v, extra_aovs, extra_stats = self.shade(view, rec, fp, bias, values)
-            v = finish(dr.clip(v, 0.0, 1.0), rec)
-            texel = dr.select(rec["active"], rec["texel"], 0.0)
-            zb = dr.select(rec["active"], rec["zbias"], 0.0)
-            dr.eval(v, texel, zb)
-            vis[light.name] = v
-            aovs[f"{light.name}.texel"] = gb.to_image(texel)
-            aovs[f"{light.name}.receiver_bias"] = gb.to_image(zb)
-            for k, a in extra_aovs.items():
-                aovs[f"{light.name}.{k}"] = gb.to_image(dr.select(rec["active"], a, 0.0))
-            for k, s in extra_stats.items():
-                stats.setdefault(k, {})[light.name] = s
-            stats["shadow_map_texels"] += view.nfaces * view.res * view.res
-            stats["resolution"][light.name] = view.res
-            stats["depth_bits"][light.name] = view.bits
-            stats["faces"][light.name] = view.nfaces
-            stats["moment_bytes"][light.name] = view.nfaces * view.res * view.res * self.channel_count(values) * 4
-        return ShadowResult(visibility=vis, aovs=aovs, stats=stats)
+        view = view_for(frame, light.name, values)
+        rec = prepare_receiver(frame, view, ctx.bias)
+        fp = footprint(view, rec, n)
+        v, extra_aovs, extra_stats = self.shade(view, rec, fp, ctx.bias, values)
+        mbytes = view.nfaces * view.res * view.res * self.channel_count(values) * 4
+        return LightResult(dr.clip(v, 0.0, 1.0), {"texel": rec["texel"], "receiver_bias": rec["zbias"], **extra_aovs},
+                           active=rec["active"], stats={**map_stats(view), **extra_stats, "moment_bytes": mbytes},
+                           maps=[{**map_entry(view), "moment_bytes": mbytes}])
+
+    def summarise(self, frame, values, ctx, lights):
+        n = int(values.get("kernel", 1))
+        return {**super().summarise(frame, values, ctx, lights), "moment_channels": self.channel_count(values),
+                "blur_taps_per_texel": 2 * n if n > 1 else 0}

@@ -37,7 +37,7 @@ a point light). ``sdf_edge_mc`` samples the actual emitter and bounds it by its 
 ``sdf_quilez`` is differentiable: the marches run detached and the result is recomputed from the
 minimum they found (τ̂(f_min/ρ(t_min)), resp. clamp(k·min h/t)), whose derivative in the light
 radius is that of the minimum (envelope theorem); pass a Dr.Jit Float of width 1 with gradients
-enabled (the convention of ``pcss.light_size``). ``sdf_discrete`` is piecewise constant.
+enabled (the convention of every family, :meth:`Technique.resolve`). ``sdf_discrete`` is piecewise constant.
 
 AOVs per light: ``<light>.iterations`` (SDF evaluations per point), and for the single-ray
 techniques ``<light>.r_min`` (the relative distance found, 1 where the cone was clear) and
@@ -59,7 +59,7 @@ from ..scene.lights import light_sphere
 from ..sdf import soft
 from ..sdf.trace import hard_visibility
 from . import _sdf_shading as sdf_shading
-from .base import Param, ShadowResult, Technique, param_table_markdown, register
+from .base import LightResult, Param, Pooled, Technique, light_scale_param, param_table_markdown, register, scaled_size
 
 SOURCE = "004_15e39f1e68ecd753.txt"
 
@@ -70,11 +70,10 @@ DIRECTION = Param("direction", "A", "choice", choices=soft.DIRECTIONS, source="0
                   doc="A: march from the surface point to the light; B: from the light to the point (same cone)")
 I_MAX = Param("i_max", 256, "int", 1, 8192, "steps", source="004 Alg. 3",
               doc="the march stops after this many SDF evaluations and keeps what it found")
-LIGHT_SCALE = Param("light_scale", 1.0, "float", 0.0, 16.0, "× the light's radius", True, source="004 §3.2",
-                    doc="radius of the light sphere = light_scale × the scene light's radius R (sphere/point/disk/spot "
-                        "r; rect √(w·h/π); directional: the sun disk); 0 = a point light")
-LIGHT_SCALE_ND = Param("light_scale", 1.0, "float", 0.0, 16.0, "× the light's radius", False, source="004 §3.2",
-                       doc=LIGHT_SCALE.doc + " (not differentiable: the result is piecewise constant)")
+_SPHERE = ("radius of the light sphere = light_scale × the scene light's radius R (sphere/point/disk/spot r; "
+           "rect √(w·h/π); directional: the sun disk)")
+LIGHT_SCALE = light_scale_param("004 §3.2", True, _SPHERE)
+LIGHT_SCALE_ND = light_scale_param("004 §3.2", False, _SPHERE + " (not differentiable: the result is piecewise constant)")
 SURFACE_RADIUS = Param("surface_radius", 0.1, "float", 0.01, 8.0, "pixels", source="004 §2.9",
                        doc="radius R0 of the surface sphere around a Mitsuba G-buffer point, in pixel widths at its "
                            "distance; the march starts from p + R0·n (cone-traced G-buffers bring their own)")
@@ -113,70 +112,37 @@ def surface_points(frame, surface_radius):
 
 
 class SDFTechnique(Technique):
-    """Shared render loop: per light, ``light_visibility`` gives per-point Dr.Jit visibility,
-    AOVs and the SDF evaluations per point."""
+    """The SDF family's per-light part: :meth:`light_visibility` gives per-point Dr.Jit
+    visibility, AOVs (``iterations``: SDF evaluations per point) and the light radius used."""
 
     source = SOURCE
 
-    def resolve(self, overrides: dict | None = None) -> dict:
-        """As every technique, but a differentiable parameter may be a Dr.Jit Float of width 1
-        (gradients flow through it); everything else must be a plain value."""
-        overrides = dict(overrides or {})
-        jit = {}
-        for k, v in list(overrides.items()):
-            if isinstance(v, dr.ArrayBase):
-                p = self.param(k)
-                if not p.differentiable:
-                    raise InputError(f"{self.name}.{k}: only differentiable parameters may be Dr.Jit arrays; "
-                                     "pass a number")
-                if dr.width(v) != 1:
-                    raise InputError(f"{self.name}.{k}: a Dr.Jit parameter must hold one value, got {dr.width(v)}")
-                p.parse(float(dr.detach(v)[0]), self.name)
-                overrides[k] = float(dr.detach(v)[0])
-                jit[k] = v
-        values = super().resolve(overrides)
-        values.update(jit)
-        return values
-
     def light_radius(self, frame, light, values):
-        """(centre, radius as a Dr.Jit Float of width 1, its value) of the light's sphere."""
+        """(centre, radius as a Dr.Jit Float of width 1, its value) of the light's sphere:
+        ``light_scale`` × the sphere's radius R (:func:`~shadowlab.techniques.base.scaled_size`)."""
         center, R = light_sphere(frame.scene, light)
-        s = values.get("light_scale", 1.0)
-        if isinstance(s, dr.ArrayBase):
-            return center, s * R, float(dr.detach(s)[0]) * R
-        return center, dr.opaque(mi.Float, float(s) * R), float(s) * R
+        r, rv = scaled_size(values.get("light_scale", 1.0), R)
+        return center, r, rv
 
     def light_visibility(self, frame, sdf, light, o, R0, values):  # pragma: no cover - interface
         raise NotImplementedError
 
-    def render(self, frame, params: dict | None = None) -> ShadowResult:
-        values = self.resolve(params)
-        sdf = require_sdf(frame, self.name)
-        gb = frame.gbuffer
-        o, R0 = surface_points(frame, values.get("surface_radius", SURFACE_RADIUS.default))
-        valid = gb.valid
-        vis, aovs = {}, {}
-        stats = {"sdf_evals_per_point": {}, "at_i_max": {}, "light_radius": {}}
-        tot, pts = 0.0, 0
-        mask = valid.numpy()
-        for light in frame.lights:
-            v, extra, radius = self.light_visibility(frame, sdf, light, o, R0, values)
-            v = dr.select(valid, v, 1.0)
-            extra = {k: dr.select(valid, dr.detach(a), 0.0) for k, a in extra.items()}
-            dr.eval(v, *extra.values())
-            vis[light.name] = v
-            for k, a in extra.items():
-                aovs[f"{light.name}.{k}"] = gb.to_image(a)
-            its = extra["iterations"].numpy()[mask] if "iterations" in extra else np.zeros(0)
-            n = int(mask.sum())
-            stats["sdf_evals_per_point"][light.name] = float(its.mean()) if n else 0.0
-            imax = values.get("i_max")
-            stats["at_i_max"][light.name] = float((its >= imax).mean()) if n and imax and \
-                self.name not in ("sdf_mc", "sdf_edge_mc") else 0.0
-            stats["light_radius"][light.name] = radius
-            tot, pts = tot + float(its.sum()), pts + n
-        stats["sdf_evals_per_point"]["all"] = tot / pts if pts else 0.0
-        return ShadowResult(visibility=vis, aovs=aovs, stats=stats)
+    def prepare(self, frame, values, ctx):
+        ctx.sdf = require_sdf(frame, self.name)
+        ctx.o, ctx.R0 = surface_points(frame, values.get("surface_radius", SURFACE_RADIUS.default))
+        ctx.mask = frame.gbuffer.valid.numpy()
+
+    def render_light(self, frame, light, values, ctx):
+        v, extra, radius = self.light_visibility(frame, ctx.sdf, light, ctx.o, ctx.R0, values)
+        return LightResult(v, extra, active=frame.gbuffer.valid, stats={"light_radius": radius})
+
+    def light_stats(self, frame, light, values, ctx, result):
+        mask = ctx.mask
+        its = result.aovs["iterations"].numpy()[mask] if "iterations" in result.aovs else np.zeros(0)
+        n = int(mask.sum())
+        imax = values.get("i_max")
+        at = float((its >= imax).mean()) if n and imax and self.name not in ("sdf_mc", "sdf_edge_mc") else 0.0
+        return {"sdf_evals_per_point": Pooled(float(its.sum()), n, float(its.mean()) if n else 0.0), "at_i_max": at}
 
 
 @register

@@ -1,6 +1,6 @@
-"""Plain shadow map (``hard``) with the bias variants of 003_b5589b67cce60746.txt §2.3.
+"""Plain shadow map (``hard``) with the bias variants of [Buljan 2020, §2.3].
 
-Source: 003_b5589b67cce60746.txt §2.1 (principle: project the shaded point into the light's
+Source: [Buljan 2020, §2.1] (principle: project the shaded point into the light's
 clip space and compare its NDC depth with the stored one) and §2.3 "Nedostatci i poboljšanja"
 (shadow acne and its fixes, light leaking / Peter Panning when the bias is too large).
 The depth maps are :class:`~shadowlab.render.lightview.LightView` s (ray cast per texel centre,
@@ -68,7 +68,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..errors import InputError
-from .base import Param, ShadowResult, Technique, param_table_markdown, register
+from .base import LightResult, Param, Technique, param_table_markdown, register
 
 SOURCE = "003 §2.3"
 RES_MIN, RES_MAX = 64, 8192
@@ -215,8 +215,10 @@ def finish(vis, rec: dict):
 
 
 class ShadowMapTechnique(Technique):
-    """A technique that samples each light's shadow map: resolves the shared parameters, builds
-    the receivers and the AOVs and stats; subclasses implement :meth:`filter`."""
+    """A technique that samples each light's shadow map. Its per-light part builds the
+    light's map and receivers and calls :meth:`filter` (the one thing ``hard`` and ``pcf``
+    implement); ``texel``, ``receiver_bias`` and ``depth_bias`` AOVs and the map's stats
+    (``maps``: resolution, depth bits, faces, texels, near, far) come with it."""
 
     source = "003_b5589b67cce60746.txt"
 
@@ -228,30 +230,40 @@ class ShadowMapTechnique(Technique):
     def filter(self, view, rec: dict, bias: Bias, values: dict):  # pragma: no cover - interface
         raise NotImplementedError
 
-    def render(self, frame, params: dict | None = None) -> ShadowResult:
-        values = self.resolve(params)
-        bias = opaque_bias(values)
-        gb = frame.gbuffer
-        vis, aovs = {}, {}
-        stats = {"shadow_map_texels": 0, "resolution": {}, "depth_bits": {}, "faces": {}}
-        for light in frame.lights:
-            view = view_for(frame, light.name, values)
-            rec = receiver(frame, view, bias)
-            v = finish(self.filter(view, rec, bias, values), rec)
-            _, _, b = stored_depth(view, rec["face"], texel_index(rec["u"]), texel_index(rec["v"]), bias)
-            texel = dr.select(rec["active"], rec["texel"], 0.0)
-            zb = dr.select(rec["active"], rec["zbias"], 0.0)
-            b = dr.select(rec["active"], b, 0.0)
-            dr.eval(v, texel, zb, b)
-            vis[light.name] = v
-            aovs[f"{light.name}.texel"] = gb.to_image(texel)
-            aovs[f"{light.name}.receiver_bias"] = gb.to_image(zb)
-            aovs[f"{light.name}.depth_bias"] = gb.to_image(b)
-            stats["shadow_map_texels"] += view.nfaces * view.res * view.res
-            stats["resolution"][light.name] = view.res
-            stats["depth_bits"][light.name] = view.bits
-            stats["faces"][light.name] = view.nfaces
-        return ShadowResult(visibility=vis, aovs=aovs, stats=stats)
+    def bias_values(self, values: dict) -> dict:
+        """The values :func:`opaque_bias` reads (all of ``BIAS_PARAMS``)."""
+        return values
+
+    def prepare(self, frame, values, ctx):
+        ctx.bias = opaque_bias(self.bias_values(values))
+
+    def view(self, frame, light, values, ctx):
+        """The LightView the technique samples for ``light`` (one map per light)."""
+        return view_for(frame, light.name, values)
+
+    def render_light(self, frame, light, values, ctx):
+        view = self.view(frame, light, values, ctx)
+        rec = receiver(frame, view, ctx.bias)
+        v = self.filter(view, rec, ctx.bias, values)
+        _, _, b = stored_depth(view, rec["face"], texel_index(rec["u"]), texel_index(rec["v"]), ctx.bias)
+        return LightResult(v, {"texel": rec["texel"], "receiver_bias": rec["zbias"], "depth_bias": b},
+                           active=rec["active"], stats=map_stats(view), maps=[map_entry(view)])
+
+    def summarise(self, frame, values, ctx, lights):
+        return {"shadow_map_texels": sum(m["texels"] for st in lights.values() for m in st.get("maps", ()))}
+
+
+def map_stats(view) -> dict:
+    """The per-light map stats readers use (``stats["resolution"][light]`` ...)."""
+    return {"resolution": view.res, "depth_bits": view.bits, "faces": view.nfaces}
+
+
+def map_entry(view) -> dict:
+    """One map's entry of ``stats["lights"][light]["maps"]``: its format and its own projection."""
+    f0 = view.proj.faces[0]
+    return {"resolution": view.res, "depth_bits": view.bits, "faces": view.nfaces,
+            "texels": view.nfaces * view.res * view.res, "near": float(f0.near), "far": float(f0.far),
+            "projection": "orthographic" if f0.ortho else "perspective"}
 
 
 @register
