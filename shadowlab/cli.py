@@ -14,11 +14,14 @@ from .bench import run as run_bench
 from .errors import GateFailure, ShadowlabError
 from .exchange.export import export_scene
 from .exchange.ingest import ingest as run_ingest
-from .fit import Budget, fit as run_fit
+from .fit import Budget
+from .fit import fit as run_fit
 from .fit.preset import load as load_preset
 from .fit.report import summary_table as fit_table
 from .gate.runner import run_gate_file
-from .pipeline import compare as cmp, parse_resolution, reference as ref
+from .pipeline import compare as cmp
+from .pipeline import parse_resolution
+from .pipeline import reference as ref
 from .reference.store import list_references
 from .report import summary_table
 from .scene.spec import builtin_names, load_spec, resolve

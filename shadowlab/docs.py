@@ -10,6 +10,7 @@ from __future__ import annotations
 import re
 import sys
 from pathlib import Path
+
 from .scene.spec import builtin_names, load_spec, resolve
 from .techniques import base
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import numpy as np
 import drjit as dr
+import numpy as np
 
 from . import backend
 from .errors import InputError, ReferenceError_
@@ -64,7 +64,7 @@ def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0
     t0 = time.perf_counter()
     frame = make_frame(sc, ss=ss, seed=seed)
     with _progress_bar(None, f"truth {sc.name}", progress) as bar:
-        if sc.kind == "sdf":  # SDF-only objects: Mitsuba cannot see them; the MC cone reference (004 §3.3.1)
+        if sc.kind == "sdf":  # SDF-only objects: Mitsuba cannot see them; the MC cone reference ([Bán 2019, §3.3.1])
             truth = sdf_truth.render_truth(frame, seed=seed, progress=bar.update)
         else:
             truth = render_truth(frame, k=strata, target_se=target_se, max_rounds=max_rounds, seed=seed, spp=spp,

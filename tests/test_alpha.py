@@ -1,4 +1,4 @@
-"""Alpha-tested casters (003_b5589b67cce60746.txt §2.4): texels whose alpha is below the cut-off
+"""Alpha-tested casters ([Buljan 2020, §2.4]): texels whose alpha is below the cut-off
 are transparent to every ray: camera rays (G-buffer), light-view depth rays (shadow maps) and
 the ground truth's shadow rays.
 

@@ -63,10 +63,12 @@ def test_key_pattern_finds_citations():
 
 
 def test_repository_docs_name_no_file_outside_the_repository():
-    """docs/ cites by key only. (README.md joins this list once the technique declarations'
-    ``source`` strings, which its generated tables copy, cite by key too.)"""
+    """docs/, the README, the package and the scene files cite by key only: they name no file the
+    repository does not hold."""
     bad = re.compile(r"DESIGN\.md|TECHNIQUES\.md|\.\./shared|\b\d{3}_[0-9a-f]{16}\.txt")
-    for f in sorted((ROOT / "docs").glob("*.md")):
+    files = sorted((ROOT / "docs").glob("*.md")) + [ROOT / "README.md"] + sorted((ROOT / "shadowlab").rglob("*.py")) \
+        + sorted((ROOT / "scenes").glob("*.toml"))
+    for f in files:
         hits = bad.findall(f.read_text(encoding="utf-8"))
         assert not hits, (f.name, hits)
 

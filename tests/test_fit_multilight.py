@@ -160,7 +160,7 @@ def test_a_fit_compare_would_call_worse_backs_off_toward_its_start(mitsuba_backe
             m = {**m, "rmse_penumbra": m["rmse_penumbra"] + 1.0}
         return m, pl, img
 
-    monkeypatch.setattr(pipeline, "technique_metrics", rigged)
+    monkeypatch.setattr(R, "technique_metrics", rigged)   # the name fit.run calls
     p = R.plan("pcss", frame, params=["light_scale"], sets={"light_scale": 0.5})
     r = R.execute(p, frame, truth, R.Budget(steps=4))
     x = r["params"]["light_scale"]["fitted"]

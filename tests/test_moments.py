@@ -1,4 +1,4 @@
-"""Prefiltered shadow maps of 003_b5589b67cce60746.txt §3.3–§3.5 and MSM (Peters & Klein 2015):
+"""Prefiltered shadow maps of [Buljan 2020, §3.3–§3.5] and MSM ([Peters 2015]):
 ``vsm``, ``esm``, ``evsm``, ``msm`` and their shared prefilter (shadowlab/techniques/prefilter.py).
 
 Scenes: the built-in ``parallel_planes`` (occluder and floor parallel to the light's image

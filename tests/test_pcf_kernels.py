@@ -1,4 +1,4 @@
-"""``pcf`` kernels of 003_b5589b67cce60746.txt §3.2: grid, Gaussian, Poisson disk (16/32/64),
+"""``pcf`` kernels of [Buljan 2020, §3.2]: grid, Gaussian, Poisson disk (16/32/64),
 per-point rotated Poisson disk, and hardware-style 2×2 bilinear taps.
 
 Scenes: ``edge`` — a half-plane occluder (x < 0, height 0.5) over a floor under a delta
@@ -121,7 +121,7 @@ def test_declarations():
     assert t.param("pattern").choices == pcf_mod.PATTERNS and t.param("pattern").default == "grid"
     assert t.param("bilinear").default is False and t.param("kernel").hi == 9
     for p in t.params:
-        assert p.doc and p.source.startswith("003 §")
+        assert p.doc and p.source.startswith("[Buljan 2020, §")
     doc = pcf_mod.__doc__
     assert "[Buljan 2020, §3.2]" in doc                   # the source, by its bibliography key
     for pat in pcf_mod.PATTERNS:

@@ -1,4 +1,4 @@
-"""``pcss`` (003_b5589b67cce60746.txt §3.6): blocker search, penumbra estimate, variable-width PCF.
+"""``pcss`` ([Buljan 2020, §3.6]): blocker search, penumbra estimate, variable-width PCF.
 
 Main scene: the built-in ``parallel_planes`` with its committed 128² reference — a square light of
 side 1 at height 4, a half-plane occluder x < 0 at height 2 and the floor at 0, all parallel (PCSS's

@@ -1,4 +1,4 @@
-"""SDF representation (004_15e39f1e68ecd753.txt §2.4–2.6): exact distances against closed forms and
+"""SDF representation ([Bán 2019, §2.4–2.6]): exact distances against closed forms and
 brute force, Lipschitz ≤ 1 for every primitive, transform and CSG node, bounds where not exact,
 the twins of Mitsuba primitives, and the ``[[sdf]]`` scene tables."""
 
@@ -157,7 +157,7 @@ def test_lipschitz_at_most_one(name):
 
 
 def test_csg_and_nonuniform_scale_are_bounds_of_the_true_distance():
-    """Theorem 1 of 004 §2.6 and the σ_min rule of Transformed: |f| ≤ distance to the surface
+    """Theorem 1 of [Bán 2019, §2.6] and the σ_min rule of Transformed: |f| ≤ distance to the surface
     (brute force on the surface of an ellipsoid, a box with a hole drilled through)."""
     rng = np.random.default_rng(5)
     u = rng.normal(size=(40000, 3))
@@ -186,7 +186,7 @@ def test_csg_and_nonuniform_scale_are_bounds_of_the_true_distance():
 
 
 def test_negative_offset_is_a_bound_that_erodes_corners_by_more_than_d():
-    """004 §6.6, Fig. 6.20: eroding a box by d gives the box with half extents shrunk by d, whose
+    """[Bán 2019, §6.6, Fig. 6.20]: eroding a box by d gives the box with half extents shrunk by d, whose
     corner lies √3·d inside the original corner; f + d is a bound of its distance (too small off
     the corner by (√3 − 1)·d), exact off a face."""
     d = 0.1

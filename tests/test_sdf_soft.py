@@ -1,11 +1,11 @@
-"""Single-ray soft shadows (004_15e39f1e68ecd753.txt ch. 3–4) against closed forms.
+"""Single-ray soft shadows ([Bán 2019, ch. 3–4]) against closed forms.
 
 Geometry of the planar-edge checks: the shading point at the origin, a spherical light of
 radius R centred at (0, 0, d) above it, so the cone to the light has tanα = k (R = d·sin α).
 The occluder is the half-space x ≥ b·z cut to a slab z ∈ [z0, z1] (a block with one face
 through the cone's apex): its central projection onto every cross-section of the cone is the
 same half-disk, at relative distance r = b/k from the centre, so the visible part of the light's
-disk is exactly τ(r) (004 §4.1), and its visible solid angle is a 1-D integral
+disk is exactly τ(r) ([Bán 2019, §4.1]), and its visible solid angle is a 1-D integral
 (:func:`solid_angle_fraction`). One SDF serves every lane; the lanes differ in R (hence r).
 """
 
@@ -62,7 +62,7 @@ def march(mods, sdf, ks, variant, direction, eps, i_max=8192, R0=1e-7):
 
 
 # ---------------------------------------------------------------------------------------------
-# τ and τ⁻¹ (004 §4.1, §4.3.1)
+# τ and τ⁻¹ ([Bán 2019, §4.1], §4.3.1)
 
 def test_tau_end_points_symmetry_monotonicity_and_slope(mods):
     dr, mi, _, soft = mods
@@ -193,10 +193,10 @@ def test_light_radius_gradient_matches_finite_differences(mods):
 
 
 # ---------------------------------------------------------------------------------------------
-# the model's known failures, measured (004 §6.5–6.6)
+# the model's known failures, measured ([Bán 2019, §6.5–6.6])
 
 def test_two_occluders_from_opposite_sides_leak_light(mods):
-    """004 §6.5 "több árnyékoló": only the largest occluder counts. Two blocks from opposite
+    """[Bán 2019, §6.5] "több árnyékoló": only the largest occluder counts. Two blocks from opposite
     sides each hide 1 − τ(r) of the light; together 2(1 − τ(r)); the single ray sees one."""
     dr, mi, field, soft = mods
     b = 0.01
@@ -217,7 +217,7 @@ def test_two_occluders_from_opposite_sides_leak_light(mods):
 
 
 def test_thin_occluder_lets_light_through(mods):
-    """004 §6.6 "vékony objektumok": an opaque plate across the whole cone blocks everything (the
+    """[Bán 2019, §6.6] "vékony objektumok": an opaque plate across the whole cone blocks everything (the
     Monte-Carlo reference measures 0), yet when it is thinner than the cone's diameter there the
     axis' distance never drops below −w/2, so the single ray reports τ(−w/(2ρ)): 40–48 % of the
     light leaks. A plate thicker than the cone's diameter gives 0, as it should."""
@@ -240,7 +240,7 @@ def test_thin_occluder_lets_light_through(mods):
 
 
 def test_negative_offset_spreads_an_edges_penumbra_into_the_umbra(mods):
-    """004 §6.6 "ofszet": a square prism seen across one of its edges (faces at ±45° to the axis)
+    """[Bán 2019, §6.6] "ofszet": a square prism seen across one of its edges (faces at ±45° to the axis)
     projects to a half-plane, so the truth is τ(b/k) on both sides (Monte Carlo measures it).
     Outside the prism the single ray finds the edge at ϱ = b/k: exact. Inside, the axis is at
     most |b|·z/√2 deep (the eroded edge lies √2·|d| back, Fig. 6.20), so it reports τ(b/(√2·k)):
@@ -267,7 +267,7 @@ def test_negative_offset_spreads_an_edges_penumbra_into_the_umbra(mods):
 
 
 def test_pointed_corner_is_too_dark(mods):
-    """004 §6.5 "hegyes objektumok": a right-angled edge (the quarter-space x ≥ 0, y ≥ 0 along the
+    """[Bán 2019, §6.5] "hegyes objektumok": a right-angled edge (the quarter-space x ≥ 0, y ≥ 0 along the
     axis) hides a quarter of the light; the single ray takes its nearest point for a half-plane
     and hides half."""
     dr, mi, field, soft = mods
@@ -350,7 +350,7 @@ def test_monte_carlo_cosine_weight_is_the_ratio_of_eq_5_1(mods):
 
 
 def test_anti_aliased_hard_shadow_is_a_ramp_of_the_surface_sphere(mods):
-    """004 §4.3.3: light radius 0, surface sphere R0: the shadow edge of a plate is a ramp whose
+    """[Bán 2019, §4.3.3]: light radius 0, surface sphere R0: the shadow edge of a plate is a ramp whose
     width on the receiver is 2·R0 (the cone's diameter at the point), hard outside it."""
     dr, mi, field, soft = mods
     sdf = field.Box((50.0, 50.0, 0.25), (50.0, 0.0, 4.5))            # occluder x ≥ 0

@@ -1,4 +1,4 @@
-"""Sphere tracing, cone tracing and the cone-traced G-buffer (004_15e39f1e68ecd753.txt §2.7–2.9, §3.1)
+"""Sphere tracing, cone tracing and the cone-traced G-buffer ([Bán 2019, §2.7–2.9], §3.1)
 against Mitsuba ray intersections of the SDF twins, closed forms, and dense marching."""
 
 import numpy as np
@@ -95,7 +95,7 @@ def test_cone_traced_gbuffer_agrees_with_mitsuba_gbuffer(name, max_excluded):
 
     * the centre ray's hit (``p_surface``) is Mitsuba's: within a quarter of the pixel's footprint
       (measured ≤ 4e-4 m), depth within 1e-3 relative, normal within 1°;
-    * the surface point ``p`` (004 §2.9) lies on the camera ray in front of Mitsuba's hit by at
+    * the surface point ``p`` ([Bán 2019, §2.9]) lies on the camera ray in front of Mitsuba's hit by at
       least its ball's radius (the ball is empty) and by at most (1 + κ) cone radii / |cos θ|
       (measured 1.00–1.255), with its normal within 6° (curvature over that gap) and U within
       6 % of the largest U (the point is that much closer to the light);
@@ -148,7 +148,7 @@ def test_cone_traced_gbuffer_agrees_with_mitsuba_gbuffer(name, max_excluded):
 
 def test_cone_trace_stops_where_the_cone_first_touches_a_sphere():
     """Cone of half-angle α along +z past a ball (centre (b, 0, z0), radius R): the trace must stop
-    between the first t where f = (1 + κ)·t·tanα + eps and the first t where f = t·tanα (004 §2.8:
+    between the first t where f = (1 + κ)·t·tanα + eps and the first t where f = t·tanα ([Bán 2019, §2.8]:
     each step keeps the cone's slice inside the empty ball); without such a t it misses."""
     from shadowlab.sdf.trace import CONE_KAPPA
     R, z0, ta, eps = 0.5, 4.0, 0.05, 1e-4
@@ -208,7 +208,7 @@ def test_mandelbulb_sphere_tracing_does_not_tunnel():
 
 
 def test_hard_visibility_matches_mitsuba_shadow_rays():
-    """Hard shadows of the light's centre (004 §3.1) at the Mitsuba G-buffer's points: the SDF
+    """Hard shadows of the light's centre ([Bán 2019, §3.1]) at the Mitsuba G-buffer's points: the SDF
     sphere trace and Mitsuba's ray_test agree except for rays that graze an occluder."""
     sc = load("sdf_simple")
     sdf, gb = sdf_of(sc), gbuffer(sc)
@@ -243,7 +243,7 @@ def test_mandelbulb_frame_uses_the_cone_traced_gbuffer_and_refuses_shadow_maps()
     assert names == ["floor", "bulb"]
     bulb = gb.shape_id == names.index("bulb")
     assert 0.05 < bulb.mean() < 0.6 and (gb.shape_id == 0).mean() > 0.2
-    # surface points (004 §2.9): their ball covers the pixel cone and reaches at most (1 + κ) of it
+    # surface points ([Bán 2019, §2.9]): their ball covers the pixel cone and reaches at most (1 + κ) of it
     from shadowlab.sdf.trace import CONE_KAPPA
     m = gb.mask.ravel()
     f, cone_r = frame.sdf.distance(gb.p).numpy()[m], gb.t.numpy()[m] * gb.tan_alpha

@@ -1,4 +1,4 @@
-"""SDF soft-shadow techniques (004_15e39f1e68ecd753.txt) against the ground truth of the SDF scenes.
+"""SDF soft-shadow techniques ([Bán 2019]) against the ground truth of the SDF scenes.
 
 The scenes' objects all have Mitsuba twins (except ``mandelbulb``), so the truth is Mitsuba's:
 visibility ``V`` = shadowed / unshadowed direct light at the G-buffer's points, ``A`` the
@@ -98,7 +98,7 @@ def test_penumbra_error_of_every_variant_on_sdf_simple(simple):
 
 def test_base_and_linear_within_eps_where_one_planar_occluder_casts_the_penumbra(simple):
     """Where the occluder at the minimum is planar across the cone (plane residual < 0.2 of the cone
-    radius; 004 §4.1's assumption), the single ray is within ε of the truth (visible fraction A;
+    radius; [Bán 2019, §4.1]'s assumption), the single ray is within ε of the truth (visible fraction A;
     V differs from A by the cosine weighting, 0.007 RMSE here), down to a floor of ~0.02 at
     small ε: the spheres' curvature across the cone and the surface sphere's offset."""
     pen, A = simple["pen"], simple["A"]
@@ -150,7 +150,7 @@ def test_hard_equals_point_light_visibility_except_within_one_pixel_of_edges(sim
 
 
 def test_quilez_penumbra_is_narrower_and_darker_than_the_truth(simple):
-    """004 §6.4: the Quílez/Aaltonen estimate cannot see behind the occluder's silhouette, so the
+    """[Bán 2019, §6.4]: the Quílez/Aaltonen estimate cannot see behind the occluder's silhouette, so the
     inner half of the penumbra comes out as umbra."""
     pen, m, V = simple["pen"], simple["mask"], simple["V"]
     lin, _ = vis(simple, "sdf_linear")
@@ -188,7 +188,7 @@ def test_the_light_below_the_receivers_horizon_darkens_the_single_ray(simple):
 
 
 # ---------------------------------------------------------------------------------------------
-# the failure modes of 004 §6.5–6.6 on their scenes
+# the failure modes of [Bán 2019, §6.5–6.6] on their scenes
 
 def test_light_leaks_through_the_thin_plate_not_the_thick_slab(mitsuba_backend, tmp_path_factory):
     from shadowlab.render.gbuffer import vec_numpy
@@ -207,8 +207,8 @@ def test_light_leaks_through_the_thin_plate_not_the_thick_slab(mitsuba_backend, 
 
 
 def test_pointed_occluders_are_too_dark_outside_and_eroded_inside(mitsuba_backend, simple, tmp_path_factory):
-    """004 §6.5 (pointed objects): at the hexagon's corners of the cube pointing at the light the
-    occluder is a wedge, not a half-plane, so the outer penumbra is too dark; 004 §6.6 (offset):
+    """[Bán 2019, §6.5] (pointed objects): at the hexagon's corners of the cube pointing at the light the
+    occluder is a wedge, not a half-plane, so the outer penumbra is too dark; [Bán 2019, §6.6] (offset):
     the cone's negative offset erodes edges, so the inner penumbra is too bright."""
     case = _case("sdf_pointed", tmp_path_factory)
     V, pen = case["V"], case["pen"]
@@ -243,7 +243,7 @@ def test_chapter5_estimators_on_a_sphere_light(simple):
 
 
 def test_chapter5_on_a_rectangle_light(mitsuba_backend, tmp_path_factory):
-    """004 §5.4: any light bounded by a sphere: ``contact``'s 1 m square light."""
+    """[Bán 2019, §5.4]: any light bounded by a sphere: ``contact``'s 1 m square light."""
     case = _case("contact", tmp_path_factory)
     pen, V = case["pen"], case["V"]
     hard, _ = vis(case, "sdf_hard")
@@ -267,7 +267,7 @@ def test_mandelbulb_mc_reproduces_its_reference_and_the_single_ray_leaks(mitsuba
     z = (mc - A)[m] / np.sqrt(se[m] ** 2 + 1e-6)
     assert np.mean(np.abs(z) < 4) > 0.99                     # an independent estimate of the same integral
     # the Mandelbulb's distance estimator is not a signed distance inside the set (|f| ≪ depth):
-    # the cone passes through it as through a thin object (004 §6.6) and the umbra leaks
+    # the cone passes through it as through a thin object ([Bán 2019, §6.6]) and the umbra leaks
     umbra = m & (A <= 0.02) & (case["frame"].gbuffer.shape_id[..., 0] == 0)
     v, _ = vis(case, "sdf_linear")
     print(f"mandelbulb: umbra on the floor {umbra.sum()} px, single ray {v[umbra].mean():.3f}")

@@ -1,4 +1,4 @@
-"""``hard`` (plain shadow map with the bias variants of 003 §2.3) and ``pcf`` (003 §3.2).
+"""``hard`` (plain shadow map with the bias variants of [Buljan 2020, §2.3]) and ``pcf`` ([Buljan 2020, §3.2]).
 
 The truth is exact point-light visibility: a Mitsuba shadow ray from every G-buffer point to the
 light. The scene: floor, box and sphere under a ``point`` light (a 6-face cube map, 512² per
@@ -165,7 +165,7 @@ SPOT_SCENE = {
 def spot(mitsuba_backend):
     """A sphere floating over a level floor, a spot light straight above: the floor is
     perpendicular to the light's axis, so wide PCF kernels see no acne there (on tilted
-    receivers they do, 003 §3.2: PCF does not fix acne) and every fractional value on the
+    receivers they do, [Buljan 2020, §3.2]: PCF does not fix acne) and every fractional value on the
     floor is penumbra."""
     from shadowlab.render.frame import make_frame
     from shadowlab.scene import build, parse
@@ -220,7 +220,7 @@ def test_declarations_are_shared_and_complete():
     assert all(any(p is q for q in pcf.params) for p in BIAS_PARAMS)
     assert {"kernel", "softness"} <= {p.name for p in pcf.params}
     for p in pcf.params:
-        assert p.doc and p.source.startswith("003 §") and p.kind in ("float", "int", "bool", "choice")
+        assert p.doc and p.source.startswith("[Buljan 2020, §") and p.kind in ("float", "int", "bool", "choice")
     table = param_table_markdown(pcf)
     assert "`slope_scaled_depth_bias`" in table and "`softness`" in table
     import shadowlab.techniques.pcf as pcf_module

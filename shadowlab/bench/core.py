@@ -14,7 +14,7 @@ Measured (never asserted in tests):
   (1×1 … 7×7) and vs shadow-map size (512 … 2048) for PCF, VSM, ESM, EVSM;
 * a 50-value sweep of one continuous parameter per technique: kernels compiled after the first
   value (0 when parameters are opaque) and kernel-cache hits;
-* parameter fitting (``shadowlab.fit.goals``): pcss.light_scale by Adam vs the grid-search optimum
+* parameter fitting (``shadowlab.bench.fit``): pcss.light_scale by Adam vs the grid-search optimum
   and the grid of equal final loss.
 """
 
@@ -28,8 +28,8 @@ import numpy as np
 
 from .. import backend
 from ..errors import InputError
-from ..fit.goals import markdown as fit_markdown
-from ..fit.goals import measure as bench_fit
+from .fit import markdown as fit_markdown
+from .fit import measure as bench_fit
 from ..io.jsonio import write_json_atomic
 from ..pipeline import load_scene
 from ..reference.truth import visibility

@@ -40,17 +40,17 @@ import shutil
 import tempfile
 from pathlib import Path
 
-import numpy as np
 import mitsuba as mi
+import numpy as np
 
 from .. import __version__, backend
 from ..errors import InputError, SceneError
 from ..io.jsonio import write_json_atomic
 from ..io.png import encode_png
+from ..render.camera import Camera
 from ..scene import lights as lights_mod
 from ..scene.build import build, sensor_dict, shape_dicts
 from ..scene.spec import SceneSpec, load_spec, resolve
-from ..render.camera import Camera
 from .mesh import matrix_of, sagitta, triangulate
 from .mitsuba_xml import dict_to_xml
 from .ply import write_ply

@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import mitsuba as mi
+import numpy as np
 
 from ..errors import SceneError
 

@@ -14,7 +14,7 @@ filter sizes) fitted against the scene's Mitsuba ground truth.
 * :mod:`.report` — ``fit.json``, ``summary.md``, ``preset.toml``, ``index.html`` with the loss
   history plot and before / after / truth images.
 * :mod:`.run` — the ``shadowlab fit`` job (one technique or ``--all``).
-* :mod:`.goals` — the measurements behind the README's numbers (AD vs grid search).
+* the fitting goals (Adam vs grid search) are measured by :mod:`shadowlab.bench.fit`.
 
 >>> from shadowlab.fit import fit, Budget   # fit("parallel_planes", "pcss", out="reports/fit/pp")
 """

@@ -22,9 +22,9 @@ s×s sub-pixel shading points of a pixel when the reference was rendered with su
 
 from __future__ import annotations
 
-import numpy as np
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from ..errors import InputError
 from ..metrics import flip_map

@@ -23,9 +23,9 @@ import json
 import math
 import os
 import tempfile
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-import tomllib
 
 from ..errors import InputError
 from ..techniques import base

@@ -13,14 +13,14 @@ import html as _html
 import json
 import math
 import os
+import re
 import shutil
 import tempfile
+import textwrap
 from pathlib import Path
 from urllib.parse import quote
 
 import numpy as np
-import re
-import textwrap
 
 from ..errors import InputError
 from ..io.png import encode_png

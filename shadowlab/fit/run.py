@@ -13,8 +13,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import drjit as dr
+import numpy as np
 
 from ..errors import InputError, ShadowlabError
 from ..pipeline import load_scene, technique_metrics

@@ -21,7 +21,7 @@ Methods:
   u ∈ [0, 1] (so one learning rate suits every parameter), projected back into [0, 1] after each
   step. Defaults: 25 steps, learning rate 0.1 decaying exponentially to 10 % of it at the last
   step, β₁ = 0.7 (less momentum than the usual 0.9), β₂ = 0.999: over 5 scenes × 3 starts of
-  ``pcss.light_scale`` (``shadowlab.fit.goals``) this was the most robust of the settings tried
+  ``pcss.light_scale`` (``shadowlab.bench.fit``) this was the most robust of the settings tried
   (β₁ 0.5–0.9, final rate 2–20 %): a rough loss (``contact``: the blocker search's taps jump as
   the search region grows, which no gradient sees) can hold Adam in a local dip 10 % away from
   the optimum with other settings. Each step is one forward render and one backward pass.
@@ -47,14 +47,14 @@ not counted.
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
 import drjit as dr
-import itertools
 import mitsuba as mi
+import numpy as np
 
 from ..errors import InputError
 

@@ -21,7 +21,7 @@ from ..errors import InputError, SceneError
 from ..scene.spec import load_spec, resolve
 from ..techniques import base as tbase
 from .check import TARGETS
-from .thresholds import SHADED_METRICS, TECHNIQUE_SHADED_METRICS, Thresholds, VISIBILITY_METRICS, parse_thresholds
+from .thresholds import SHADED_METRICS, TECHNIQUE_SHADED_METRICS, VISIBILITY_METRICS, Thresholds, parse_thresholds
 
 __all__ = ["CandidateSpec", "GateSpec", "GateFile", "load_gate_file", "parse_gate_file", "FORMAT_VERSION"]
 

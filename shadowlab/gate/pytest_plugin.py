@@ -41,14 +41,15 @@ import hashlib
 import re
 from pathlib import Path
 
-import pytest
 import numpy as np
+import pytest
+
 from ..errors import InputError
 from ..io.exr import read_exr, split_rgb, write_exr
 from ..io.jsonio import read_json, write_json_atomic
 from .check import GateResult, _as_image, check
 from .html import write_page
-from .thresholds import STAT_DEFAULTS, _ALL_METRICS, parse_thresholds
+from .thresholds import _ALL_METRICS, STAT_DEFAULTS, parse_thresholds
 
 _written_key = pytest.StashKey[list]()      # config: baselines written this run
 _skipped_key = pytest.StashKey[list]()      # config: baselines not written (their test failed)

@@ -13,8 +13,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import numpy as np
 import drjit as dr
+import numpy as np
 
 from .. import backend
 from ..errors import InputError

@@ -22,9 +22,9 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
+import OpenEXR
 
 from shadowlab.errors import InputError
-import OpenEXR
 
 __all__ = ["write_exr", "read_exr", "rgb_channels", "stack_rgb", "split_rgb", "check_finite"]
 

@@ -5,8 +5,13 @@ lit regions of the truth visibility and the light-leak and over-darkening rates;
 dicts of metrics a run stores per technique, light and scene.
 """
 
-from shadowlab.metrics.compare import (SHADED_KEYS, VISIBILITY_KEYS, compare_shaded, compare_visibility,
-                                       pooled_visibility)
+from shadowlab.metrics.compare import (
+    SHADED_KEYS,
+    VISIBILITY_KEYS,
+    compare_shaded,
+    compare_visibility,
+    pooled_visibility,
+)
 from shadowlab.metrics.image import (
     delta_e2000,
     delta_e2000_map,

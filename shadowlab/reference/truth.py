@@ -29,9 +29,9 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from ..render.frame import FrameContext
 from ..render.gbuffer import vec_numpy

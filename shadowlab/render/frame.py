@@ -1,13 +1,13 @@
 """FrameContext: scene + G-buffer + unshadowed light + light views, built once per run.
 
-Every technique of a comparison reads the same FrameContext (DESIGN.md, data flow), so
+Every technique of a comparison reads the same FrameContext (docs/ARCHITECTURE.md, data flow), so
 primary rays, unshadowed light and shadow maps are computed once and shared.
 
 ``frame.sdf`` is the scene's signed distance field (:func:`shadowlab.scene.twins.sdf_of`), None for
 scenes with meshes. The scene's ``kind`` chooses the G-buffer: a ``"mitsuba"`` scene (every object
 has a Mitsuba twin, or none needs one) keeps the Mitsuba G-buffer (techniques are then evaluated at
 the ground truth's own points); an ``"sdf"`` scene (SDF-only objects, ``[[sdf]]``, e.g. a
-Mandelbulb, which Mitsuba cannot see) gets the cone-traced G-buffer of [Bálint 2019, §2.9]
+Mandelbulb, which Mitsuba cannot see) gets the cone-traced G-buffer of [Bán 2019, §2.9]
 (:func:`shadowlab.render.sdf_gbuffer.cone_gbuffer`), and shadow maps, which Mitsuba ray casts,
 refuse it.
 """
@@ -21,8 +21,8 @@ import numpy as np
 from ..errors import InputError
 from ..scene.twins import sdf_of
 from . import sdf_gbuffer
-from .gbuffer import GBuffer, gbuffer, vec_numpy
 from .camera import Camera
+from .gbuffer import GBuffer, gbuffer, vec_numpy
 from .lightview import LightView, SceneSphere, light_view
 from .screen import Screen
 from .shading import unshadowed

@@ -1,11 +1,11 @@
-"""G-buffer from the scene's own Mitsuba sensor (DESIGN.md, GBuffer).
+"""G-buffer from the scene's own Mitsuba sensor (docs/ARCHITECTURE.md, GBuffer).
 
 Camera rays go through pixel centres (or the centres of an s×s grid of sub-pixels), made by
 ``sensor.sample_ray`` so the G-buffer matches the ground-truth camera exactly. Point ``k`` of
 the flat arrays is pixel ``(x, y) = ((k // s²) % W, (k // s²) // W)``, sub-pixel ``k % s²``:
 reshaping any flat array to (H, W, s²) and averaging the last axis gives pixel values.
 
-Alpha-tested casters (003_b5589b67cce60746.txt §2.4): in a scene with ``scene.has_alpha``
+Alpha-tested casters ([Buljan 2020, §2.4]): in a scene with ``scene.has_alpha``
 camera rays continue through transparent texels (alpha < cutoff), so a pixel shows what lies
 behind a leaf card's holes; other scenes cast one ``ray_intersect`` as before.
 """
@@ -14,11 +14,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import drjit as dr
 import mitsuba as mi
-from ..scene.build import transparent
+import numpy as np
 
+from ..scene.build import transparent
 from .camera import Camera, pixel_uv
 
 

@@ -1,6 +1,6 @@
-"""Light views: one depth map per light, by casting one Mitsuba ray per texel (DESIGN.md, LightView).
+"""Light views: one depth map per light, by casting one Mitsuba ray per texel (docs/ARCHITECTURE.md, LightView).
 
-Light cameras (003_b5589b67cce60746.txt §2.2, "Različite vrste svjetla"):
+Light cameras ([Buljan 2020, §2.2], "Različite vrste svjetla"):
 
 | light kind           | light camera                                                        |
 |----------------------|---------------------------------------------------------------------|
@@ -34,7 +34,7 @@ A light may have several maps (one per fit), each :class:`Face` with its own nea
 NDC shift and matrices (:attr:`Face.view_matrix`, :attr:`Face.proj_matrix`); depth conversions
 and :meth:`LightView.lookup` read the face's own values.
 
-Alpha-tested casters (003 §2.4, "Transparentni objekti"): a texel ray passes through texels of
+Alpha-tested casters ([Buljan 2020, §2.4], "Transparentni objekti"): a texel ray passes through texels of
 an ``alpha_texture`` whose alpha is below the shape's ``alpha_cutoff`` (the depth pass's
 ``discard``), so the map stores the next surface behind a leaf card's holes.
 """
@@ -44,9 +44,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import numpy as np
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from ..errors import InputError
 from ..scene import lights as lights_mod
@@ -498,7 +498,7 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     """Render ``light``'s depth map by ray casting (module docstring has the conventions).
 
     ``backface=True`` keeps the first surface facing away from the light (front-face culling,
-    003_b5589b67cce60746.txt §2.3). The light's own emitter shape never occludes.
+    [Buljan 2020, §2.3]). The light's own emitter shape never occludes.
     ``fit``: which part of the scene the map covers (None: :class:`SceneSphere`).
     """
 
@@ -583,7 +583,7 @@ def _cast_loop(mi_scene, ray, backface, own_ptr, alpha=False):
 def _skip(si, ray, backface, own_ptr, alpha=False):
     """Hits a light-view ray passes: the light's own shape; with ``backface`` surfaces facing the
     light (front-face culling); with ``alpha`` transparent texels of alpha-tested
-    casters: the fragment shader's ``discard`` of texels with alpha < cutoff (003 §2.4)."""
+    casters: the fragment shader's ``discard`` of texels with alpha < cutoff ([Buljan 2020, §2.4])."""
     skip = mi.Bool(False)
     if own_ptr is not None:
         skip |= si.is_valid() & (si.shape == own_ptr)

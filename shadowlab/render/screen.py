@@ -30,9 +30,9 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from .camera import Camera
 

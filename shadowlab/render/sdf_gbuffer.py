@@ -27,9 +27,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from ..sdf.trace import cone_trace, sphere_trace
 from .camera import Camera

@@ -19,9 +19,9 @@ intersects and continues through transparent texels (a symbolic loop; slower, so
 
 from __future__ import annotations
 
-import numpy as np
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from ..scene.build import transparent
 from .gbuffer import vec_numpy

@@ -16,8 +16,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import numpy as np
 import mitsuba as mi
+import numpy as np
 
 from ..errors import SceneError
 from . import lights as lights_mod

@@ -25,9 +25,8 @@ import json
 import math
 import re
 import sys
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from dataclasses import replace
 
 if sys.version_info >= (3, 11):
     import tomllib

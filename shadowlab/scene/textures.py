@@ -23,8 +23,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-import numpy as np
 import mitsuba as mi
+import numpy as np
 
 
 class AlphaTextureError(ValueError):

@@ -36,9 +36,9 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 GRAD_H = 1e-3        # central-difference step of SDF.gradient (scene units)
 SLAB_THICKNESS = 0.02  # world thickness of the solid twins of Mitsuba rectangles and disks

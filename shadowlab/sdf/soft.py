@@ -88,8 +88,8 @@ import math
 from dataclasses import dataclass
 
 import drjit as dr
-import numpy as np
 import mitsuba as mi
+import numpy as np
 
 TAU_INV_ITERATIONS = 22           # bisection halvings of [−1, 1]: 2/2^23 < 1e-6 in r
 VARIANTS = ("base", "linear", "discrete", "convex")

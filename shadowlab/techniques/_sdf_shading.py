@@ -1,4 +1,4 @@
-"""Physically based shading with single-ray visibility (004_15e39f1e68ecd753.txt ch. 5).
+"""Physically based shading with single-ray visibility ([Bán 2019, ch. 5]).
 
 Eq. 5.1 is the direct light of one emitter, ``∫ f_r · V · E cos dl``; shadowlab's visibility of a
 light is the ratio of that integral to its unshadowed value U_L (``render/shading.py``), so a
@@ -7,21 +7,21 @@ technique that estimates 5.1 returns ``V = Σ f·v / Σ f`` over light samples, 
 differs from the truth only in how ``v`` is decided. Three estimators (:func:`visibility`):
 
 * ``"separable"`` — Eq. 5.2, ``I ≈ f_r(v, n, l₀) · (∫V dl/∫dl) · ∫E cos dl``: the single-ray
-  lit fraction (004 §4, Algorithm 4) times the unshadowed light. For the diffuse surfaces of
+  lit fraction ([Bán 2019, §4], Algorithm 4) times the unshadowed light. For the diffuse surfaces of
   shadowlab's scenes ``f_r(l₀)·∫E cos = ∫f_r E cos = U_L``, so the visibility is the single-ray
-  fraction itself (the shaded image is then 004 Fig. 6.16b; with ``sdf_mc``'s fraction, 6.16c;
+  fraction itself (the shaded image is then [Bán 2019, Fig. 6.16]b; with ``sdf_mc``'s fraction, 6.16c;
   with ``sdf_quilez``'s, 6.16a);
-* ``"edge"`` — 004 §5.3.1: Monte Carlo over the light's samples in Eq. 5.1, with each sample's
+* ``"edge"`` — [Bán 2019, §5.3.1]: Monte Carlo over the light's samples in Eq. 5.1, with each sample's
   visibility decided *without intersecting the scene*: the single-ray march (Algorithm 4, toward
-  the sphere bounding the light, 004 §5.4) also keeps the axis distance ``t_min`` of the minimum
+  the sphere bounding the light, [Bán 2019, §5.4]) also keeps the axis distance ``t_min`` of the minimum
   and ``f_min``; the occluder is taken for a half-plane in the cross-section there, whose edge
   line lies ``f_min`` from the axis across the SDF gradient ``g⊥`` (projected perpendicular to
   the axis; :func:`shadowlab.sdf.soft.edge_line`). A sample ray from the shading point crossing
   that plane at ``y`` is blocked iff ``⟨y − s(t_min), g⊥⟩ ≤ −f_min``. Where the march found
   nothing (the cone is clear) every sample is lit;
-* ``"traced"`` — Eq. 5.1 in full (004 Fig. 6.16e): each sample's shadow ray is sphere-traced.
+* ``"traced"`` — Eq. 5.1 in full ([Bán 2019, Fig. 6.16]e): each sample's shadow ray is sphere-traced.
 
-Any light with a bounding sphere works (004 §5.4): sphere, disk and rectangle lights are
+Any light with a bounding sphere works ([Bán 2019, §5.4]): sphere, disk and rectangle lights are
 sampled by Mitsuba's emitters; the single-ray pass uses :func:`~shadowlab.scene.lights.light_sphere`
 with ``fit="bounding"``. Sample i of point k uses stratum (i mod s, i div s) of an s×s grid,
 jittered by TEA hashes of (k, i, seed): stateless, so a sample can be drawn inside the flat

@@ -1,23 +1,26 @@
-"""Technique registry and the single declaration of every parameter (DESIGN.md, Technique).
+"""Technique registry and the single declaration of every parameter (docs/ARCHITECTURE.md, Technique).
 
 A technique declares its parameters once, as :class:`Param` objects; the CLI (``--set
 tech.param=value``), ``shadowlab techniques``, the README table, the fitting search space and
 the reports all read that declaration.
 
->>> from shadowlab.techniques import registry
->>> sorted(registry.names())[:2]  # doctest: +SKIP
-['hard', 'pcf']
+>>> from shadowlab.techniques import get, names
+>>> names()[:3]
+['hard', 'pcf', 'pcss']
+>>> get("pcf").param("kernel").default
+3
 """
 
 from __future__ import annotations
 
+import importlib
 import math
+import pkgutil
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+
 import drjit as dr
-import importlib
 import mitsuba as mi
-import pkgutil
 
 from ..errors import InputError
 

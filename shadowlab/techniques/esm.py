@@ -1,4 +1,4 @@
-"""Exponential shadow maps (``esm``), 003_b5589b67cce60746.txt §3.4 (Annen et al. 2008).
+"""Exponential shadow maps (``esm``), [Buljan 2020, §3.4] [Annen 2008].
 
 Under the assumption z ≤ z̃ (no stored depth is farther than the receiver), the depth test
 is the limit of exp(−c(z̃ − z)) for c → ∞, and for a finite c it factorises::
@@ -60,8 +60,20 @@ import drjit as dr
 
 from ..errors import InputError
 from .base import Param, param_table_markdown, register
-from .prefilter import (FILTER_PARAMS, MAP_PARAMS, RASTER_PARAMS, RECEIVER_PARAMS, PrefilteredTechnique, bilinear,
-                        blur, corner_max, max_filter, normalised_depth, pcf_footprint, scalar)
+from .prefilter import (
+    FILTER_PARAMS,
+    MAP_PARAMS,
+    RASTER_PARAMS,
+    RECEIVER_PARAMS,
+    PrefilteredTechnique,
+    bilinear,
+    blur,
+    corner_max,
+    max_filter,
+    normalised_depth,
+    pcf_footprint,
+    scalar,
+)
 
 #: ln(FLT_MAX): the largest c for which exp(c·z), z ≤ 1, is a finite fp32 number
 FP32_EXP_LIMIT = 88.72
@@ -72,7 +84,7 @@ def fp32_cap_error(where: str, value: float, cap: float, stored: str) -> InputEr
     return InputError(
         f"{where}={value:g} is above the fp32 limit {cap:g}: the map stores {stored} for normalised depths "
         f"up to 1, and the largest 32-bit float is ≈ 3.4e38 = exp(88.72), so a larger exponent overflows to "
-        f"infinity (003 §3.4/§3.5); use a value ≤ {cap:g}")
+        f"infinity ([Buljan 2020, §3.4/§3.5]); use a value ≤ {cap:g}")
 
 
 @register
@@ -85,12 +97,12 @@ class ESM(PrefilteredTechnique):
                "threshold or z-max classification of non-planar points, which fall back to PCF")
     channels = 1
     params = FILTER_PARAMS + (
-        Param("exponent", 80.0, "float", 1.0, FP32_EXP_LIMIT, "1/zn", True, source="003 §3.4",
+        Param("exponent", 80.0, "float", 1.0, FP32_EXP_LIMIT, "1/zn", True, source="[Buljan 2020, §3.4]",
               doc="c of exp(−c(z̃ − z)); 80 recommended for fp32; above 88.72 exp(c) overflows fp32"),
-        Param("fallback", "none", "choice", choices=("none", "threshold", "zmax"), source="003 §3.4",
+        Param("fallback", "none", "choice", choices=("none", "threshold", "zmax"), source="[Buljan 2020, §3.4]",
               doc="classify non-planar points and use PCF there: threshold (result > 1 + ε) or zmax "
                   "(z̃ < max depth in the footprint)"),
-        Param("threshold_eps", 0.05, "float", 0.0, 10.0, "", False, source="003 §3.4",
+        Param("threshold_eps", 0.05, "float", 0.0, 10.0, "", False, source="[Buljan 2020, §3.4]",
               doc="ε of the threshold classification"),
     ) + MAP_PARAMS + RECEIVER_PARAMS + RASTER_PARAMS
 

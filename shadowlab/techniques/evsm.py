@@ -1,4 +1,4 @@
-"""Exponential variance shadow maps (``evsm``), 003_b5589b67cce60746.txt §3.5 (Lauritzen 2008).
+"""Exponential variance shadow maps (``evsm``), [Buljan 2020, §3.5] [Lauritzen 2008].
 
 VSM (§3.3) applied to exponentially warped depths. Warping with exp(k·z) shrinks the ratio
 t = Δx/Δy that drives VSM's light leaking (for a ≤ b ≤ c, t'/t < 1, smaller for larger k);
@@ -46,8 +46,20 @@ import drjit as dr
 
 from .base import Param, param_table_markdown, register
 from .esm import FP32_EXP_LIMIT, fp32_cap_error
-from .prefilter import (BLEED, FILTER_PARAMS, MAP_PARAMS, MIN_VARIANCE, RECEIVER_PARAMS, PrefilteredTechnique,
-                        bilinear, blur, chebyshev, normalised_depth, reduction, scalar)
+from .prefilter import (
+    BLEED,
+    FILTER_PARAMS,
+    MAP_PARAMS,
+    MIN_VARIANCE,
+    RECEIVER_PARAMS,
+    PrefilteredTechnique,
+    bilinear,
+    blur,
+    chebyshev,
+    normalised_depth,
+    reduction,
+    scalar,
+)
 
 #: exp(2k) must be a finite fp32 number
 EVSM_EXP_LIMIT = 44.36
@@ -63,11 +75,11 @@ class EVSM(PrefilteredTechnique):
     summary = ("VSM on exponentially warped depths exp(k⁺z) and −exp(−k⁻z) (2 or 4 channels), the minimum of "
                "the two Chebyshev bounds, light-bleeding reduction")
     params = FILTER_PARAMS + (
-        Param("components", 4, "choice", choices=(2, 4), source="003 §3.5",
+        Param("components", 4, "choice", choices=(2, 4), source="[Buljan 2020, §3.5]",
               doc="2: (exp(kz), exp(2kz)); 4: also (−exp(−kz), −exp(−2kz)), min of the two bounds"),
-        Param("exp_pos", 40.0, "float", 1.0, EVSM_EXP_LIMIT, "1/w", True, source="003 §3.5",
+        Param("exp_pos", 40.0, "float", 1.0, EVSM_EXP_LIMIT, "1/w", True, source="[Buljan 2020, §3.5]",
               doc="k⁺ of the positive warp exp(k⁺w), w = 2zn − 1; ≤ 44.36 so that exp(2k⁺) fits fp32"),
-        Param("exp_neg", 5.0, "float", 1.0, EVSM_EXP_LIMIT, "1/w", True, source="003 §3.5",
+        Param("exp_neg", 5.0, "float", 1.0, EVSM_EXP_LIMIT, "1/w", True, source="[Buljan 2020, §3.5]",
               doc="k⁻ of the negative warp −exp(−k⁻w) (4 components only); ≤ 44.36"),
         MIN_VARIANCE, BLEED,
     ) + MAP_PARAMS + RECEIVER_PARAMS

@@ -91,7 +91,7 @@ from .base import Param, param_table_markdown, register
 from .shadow_map import BIAS_PARAMS, ShadowMapTechnique, depth_test, texel_index
 
 PATTERNS = ("grid", "gaussian", "poisson16", "poisson32", "poisson64", "rotated_poisson")
-SRC = "003 §3.2"
+SRC = "[Buljan 2020, §3.2]"
 
 # ----------------------------------------------------------------------------------------------
 # Poisson-disk sample sets (deterministic: a counter-based splitmix64 stream, no numpy RNG)

@@ -82,7 +82,7 @@ Every tap (search and PCF) is a *bilinear* tap: the four texels around it are de
 hardware 2×2 PCF; in the search, a blocker's weight also weights its depth in z_avg (the
 "blocker count" is the sum of those weights, 0 … ``blocker_samples``).
 
-``receiver_plane`` (not in the source; Isidoro 2006, "receiver plane depth bias", as in NVIDIA's
+``receiver_plane`` (not in the source; [Isidoro 2006], "receiver plane depth bias", as in NVIDIA's
 PCSS samples): each tap compares against the depth of the receiver's tangent plane (from the
 G-buffer's geometric normal) at that tap instead of z̃ at the centre. NDC depth is linear in the
 shadow-map coordinates over a plane, so the tap's reference is d̃ + ∂d/∂u·Δu + ∂d/∂v·Δv, exact
@@ -91,7 +91,7 @@ for planar receivers. Without it a receiver that is tilted in the light's view f
 the truly lit pixels come out below 0.9 (1.5 % with it), and the RMSE of the shaded image is 0.099
 (0.028 with it; ``hard`` 0.058, ``pcf`` 0.046); ``cornell`` 0.0104 → 0.0057, ``two_lights``
 0.037 → 0.019, ``analytic_sphere`` 0.018 → 0.013, ``parallel_planes`` unchanged (its receivers
-face the light). Default on, a deliberate departure from 003 §3.6 (which compares with z̃): with
+face the light). Default on, a deliberate departure from [Buljan 2020, §3.6] (which compares with z̃): with
 the source's comparison PCSS is worse than the plain shadow map on every tilted receiver, which
 is a property of that comparison rather than of PCSS; ``--set pcss.receiver_plane=false``
 gives the source's algorithm.
@@ -136,12 +136,19 @@ import numpy as np
 
 from ..errors import InputError
 from ._random import uniform as _uniform
-from .base import LightResult, Pooled, light_scale_param, param_table_markdown, register, scaled_size
-from .base import Param
-from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, map_entry, map_stats, receiver, stored_depth, texel_index,
-                         view_for)
+from .base import LightResult, Param, Pooled, light_scale_param, param_table_markdown, register, scaled_size
+from .shadow_map import (
+    BIAS_PARAMS,
+    ShadowMapTechnique,
+    map_entry,
+    map_stats,
+    receiver,
+    stored_depth,
+    texel_index,
+    view_for,
+)
 
-SOURCE = "003 §3.6"
+SOURCE = "[Buljan 2020, §3.6]"
 BLOCKER_COUNTS = (16, 25, 32)
 PCF_COUNTS = (1, 16, 32, 64)
 
@@ -220,7 +227,7 @@ PCSS_PARAMS = (
               "1 = one 2×2 bilinear tap)"),
     Param("min_filter", 1.0, "float", 0.0, 64.0, "texels", False, source=SOURCE,
           doc="w_fmin: the PCF footprint is at least this wide (full width), w_f = max(w_f, w_fmin)"),
-    Param("receiver_plane", True, "bool", source="Isidoro 2006",
+    Param("receiver_plane", True, "bool", source="[Isidoro 2006]",
           doc="receiver plane depth bias: every tap compares against the receiver's tangent plane at that "
               "tap (not in the source; removes self-blocking of tilted receivers)"),
 )

@@ -74,10 +74,9 @@ import mitsuba as mi
 
 from ..errors import InputError
 from .base import LightResult, Param, opaque_scalar
-from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, depth_test, finish, map_entry, map_stats, receiver,
-                         view_for)
+from .shadow_map import BIAS_PARAMS, ShadowMapTechnique, depth_test, finish, map_entry, map_stats, receiver, view_for
 
-SOURCE = "003 §3.3"
+SOURCE = "[Buljan 2020, §3.3]"
 KERNEL_MAX = 31
 _TINY = 1e-30
 _HUGE = 1e38
@@ -105,10 +104,10 @@ FILTER_PARAMS = (
               "grid with bilinear taps) or gaussian with σ = n/6 texels"),
 )
 
-MIN_VARIANCE = Param("min_variance", 1e-6, "float", 0.0, 0.01, "zn²", True, source="003 §3.3",
+MIN_VARIANCE = Param("min_variance", 1e-6, "float", 0.0, 0.01, "zn²", True, source="[Buljan 2020, §3.3]",
                      doc="σ²_min: lower bound of the filtered variance (zn = normalised linear depth), "
                          "against numerical problems where z̃ ≈ μ")
-BLEED = Param("bleed", 0.0, "float", 0.0, 0.95, "", True, source="003 §3.3",
+BLEED = Param("bleed", 0.0, "float", 0.0, 0.95, "", True, source="[Buljan 2020, §3.3]",
               doc="light-bleeding reduction p: Reduction(v, p) = 0 if v < p else (v − p)/(1 − p)")
 
 

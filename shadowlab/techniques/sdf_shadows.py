@@ -1,25 +1,25 @@
 """Soft shadows of signed distance fields: single-ray cone marching and its references
-(004_15e39f1e68ecd753.txt ch. 3–5; algorithms in :mod:`shadowlab.sdf.soft`, chapter 5 in
+([Bán 2019, ch. 3–5]; algorithms in :mod:`shadowlab.sdf.soft`, chapter 5 in
 :mod:`shadowlab.techniques._sdf_shading`).
 
 | technique | what it is | source |
 |---|---|---|
-| ``sdf_hard`` | sphere tracing toward the light's centre: a point light's hard shadow | 004 §3.1 |
-| ``sdf_aa_hard`` | the single-ray algorithm with light radius 0: hard shadow, edge anti-aliased by the surface sphere | 004 §4.3.3 |
-| ``sdf_base`` | Algorithm 3: threshold / trace cones kept ε apart in τ, τ⁻¹ by bisection | 004 §4.3 |
-| ``sdf_linear`` | Algorithm 4: trace cone e = επ/2 below in r, one τ at the end (the thesis' recommendation) | 004 §4.4.1 |
-| ``sdf_discrete`` | Algorithm 5: the lit fraction walks down in steps of ε | 004 §4.4.2 |
-| ``sdf_convex`` | Algorithm 4 with convex-optimised steps while R^C ≥ 0 | 004 §4.4.3 |
-| ``sdf_quilez`` | Quílez 2010 / Aaltonen 2018 penumbra estimate, k from the light size | 004 §6.4 |
-| ``sdf_mc`` | Monte-Carlo in the cone: Halton points, r-weighted or r = √u polar sampling | 004 §3.3.1 |
-| ``sdf_edge_mc`` | chapter 5: Eq. 5.1 by light sampling with visibility from the single ray's edge line (5.3.1), sphere-traced (5.1), or the separable Eq. 5.2 | 004 §5.2–5.4 |
+| ``sdf_hard`` | sphere tracing toward the light's centre: a point light's hard shadow | [Bán 2019, §3.1] |
+| ``sdf_aa_hard`` | the single-ray algorithm with light radius 0: hard shadow, edge anti-aliased by the surface sphere | [Bán 2019, §4.3.3] |
+| ``sdf_base`` | Algorithm 3: threshold / trace cones kept ε apart in τ, τ⁻¹ by bisection | [Bán 2019, §4.3] |
+| ``sdf_linear`` | Algorithm 4: trace cone e = επ/2 below in r, one τ at the end (the thesis' recommendation) | [Bán 2019, §4.4.1] |
+| ``sdf_discrete`` | Algorithm 5: the lit fraction walks down in steps of ε | [Bán 2019, §4.4.2] |
+| ``sdf_convex`` | Algorithm 4 with convex-optimised steps while R^C ≥ 0 | [Bán 2019, §4.4.3] |
+| ``sdf_quilez`` | [Quílez 2010] / [Aaltonen 2018] penumbra estimate, k from the light size | [Bán 2019, §6.4] |
+| ``sdf_mc`` | Monte-Carlo in the cone: Halton points, r-weighted or r = √u polar sampling | [Bán 2019, §3.3.1] |
+| ``sdf_edge_mc`` | chapter 5: Eq. 5.1 by light sampling with visibility from the single ray's edge line (5.3.1), sphere-traced (5.1), or the separable Eq. 5.2 | [Bán 2019, §5.2–5.4] |
 
 Every ``sdf_*`` technique needs the scene's signed distance field (``frame.sdf``; scenes made
 of rectangles, disks, cubes, spheres and capped cylinders have one, as have ``[[sdf]]`` scenes);
 on a scene with meshes or alpha-tested shapes it raises an InputError.
 
 **Shading points.** With the Mitsuba G-buffer (every scene whose objects have Mitsuba twins) a
-point p on the surface gets the surface sphere of 004 §2.9, radius ``R0 = surface_radius`` ×
+point p on the surface gets the surface sphere of [Bán 2019, §2.9], radius ``R0 = surface_radius`` ×
 the width of one pixel at p's distance from the camera (``|p − camera|·2·tan(fov/2)/(W·s)``),
 and the march starts from its centre ``p + R0·n`` (n the geometric normal facing the camera).
 With the cone-traced G-buffer of ``[[sdf]]`` scenes the point already is the centre of its
@@ -31,7 +31,7 @@ sphere / point lights exactly, disks and spots by their radius, a w × h rectang
 equal area (R = √(w·h/π)), a directional light by the sun disk the ground truth renders; the
 radius used is ``light_scale`` × R (``light_scale`` 1 = the scene's light; fitting moves it; 0 =
 a point light). ``sdf_edge_mc`` samples the actual emitter and bounds it by its sphere
-(``fit="bounding"``, 004 §5.4). ``sdf_hard`` and ``sdf_aa_hard`` use the centre only.
+(``fit="bounding"``, [Bán 2019, §5.4]). ``sdf_hard`` and ``sdf_aa_hard`` use the centre only.
 
 **Differentiability.** ``light_scale`` of ``sdf_base``, ``sdf_linear``, ``sdf_convex`` and
 ``sdf_quilez`` is differentiable: the marches run detached and the result is recomputed from the
@@ -61,26 +61,26 @@ from ..sdf.trace import hard_visibility
 from . import _sdf_shading as sdf_shading
 from .base import LightResult, Param, Pooled, Technique, light_scale_param, param_table_markdown, register, scaled_size
 
-SOURCE = "004_15e39f1e68ecd753.txt"
+SOURCE = "[Bán 2019]"
 
-EPSILON = Param("epsilon", 0.03125, "float", 1.0 / 256, 0.5, "lit fraction", source="004 §4.2",
+EPSILON = Param("epsilon", 0.03125, "float", 1.0 / 256, 0.5, "lit fraction", source="[Bán 2019, §4.2]",
                 doc="sensitivity ε: the smallest change of the lit fraction the march is sure to notice, i.e. its "
                     "maximal error (1/256 … 1/10 in the thesis, no visible gain below 1/30; 1/32 here)")
-DIRECTION = Param("direction", "A", "choice", choices=soft.DIRECTIONS, source="004 §4.3.2",
+DIRECTION = Param("direction", "A", "choice", choices=soft.DIRECTIONS, source="[Bán 2019, §4.3.2]",
                   doc="A: march from the surface point to the light; B: from the light to the point (same cone)")
-I_MAX = Param("i_max", 256, "int", 1, 8192, "steps", source="004 Alg. 3",
+I_MAX = Param("i_max", 256, "int", 1, 8192, "steps", source="[Bán 2019, Alg. 3]",
               doc="the march stops after this many SDF evaluations and keeps what it found")
 _SPHERE = ("radius of the light sphere = light_scale × the scene light's radius R (sphere/point/disk/spot r; "
            "rect √(w·h/π); directional: the sun disk)")
-LIGHT_SCALE = light_scale_param("004 §3.2", True, _SPHERE)
-LIGHT_SCALE_ND = light_scale_param("004 §3.2", False, _SPHERE + " (not differentiable: the result is piecewise constant)")
-SURFACE_RADIUS = Param("surface_radius", 0.1, "float", 0.01, 8.0, "pixels", source="004 §2.9",
+LIGHT_SCALE = light_scale_param("[Bán 2019, §3.2]", True, _SPHERE)
+LIGHT_SCALE_ND = light_scale_param("[Bán 2019, §3.2]", False, _SPHERE + " (not differentiable: the result is piecewise constant)")
+SURFACE_RADIUS = Param("surface_radius", 0.1, "float", 0.01, 8.0, "pixels", source="[Bán 2019, §2.9]",
                        doc="radius R0 of the surface sphere around a Mitsuba G-buffer point, in pixel widths at its "
                            "distance; the march starts from p + R0·n (cone-traced G-buffers bring their own)")
-AA_SURFACE_RADIUS = Param("surface_radius", 0.5, "float", 0.01, 8.0, "pixels", source="004 §4.3.3",
+AA_SURFACE_RADIUS = Param("surface_radius", 0.5, "float", 0.01, 8.0, "pixels", source="[Bán 2019, §4.3.3]",
                           doc="radius R0 of the surface sphere (pixel widths at the point's distance): the shadow "
                               "edge becomes a ramp 2·R0 wide on the receiver; 0.5 = one pixel")
-HIT_EPS = Param("hit_eps", 1e-4, "float", 1e-7, 1e-1, "world units", source="004 Alg. 2",
+HIT_EPS = Param("hit_eps", 1e-4, "float", 1e-7, 1e-1, "world units", source="[Bán 2019, Alg. 2]",
                 doc="sphere tracing reports a hit where f < hit_eps")
 
 
@@ -149,7 +149,7 @@ class SDFTechnique(Technique):
 class SDFHard(SDFTechnique):
     name = "sdf_hard"
     title = "SDF hard shadow (sphere tracing toward the light)"
-    summary = "point-light hard shadow: sphere tracing from the surface point toward the light's centre (Hart 1994)"
+    summary = "point-light hard shadow: sphere tracing from the surface point toward the light's centre [Hart 1996]"
     params = (I_MAX, HIT_EPS, SURFACE_RADIUS)
 
     def light_visibility(self, frame, sdf, light, o, R0, values):
@@ -182,9 +182,9 @@ SINGLE_RAY_PARAMS = (EPSILON, DIRECTION, I_MAX, LIGHT_SCALE, SURFACE_RADIUS)
 class SDFAAHard(SingleRay):
     name = "sdf_aa_hard"
     title = "SDF anti-aliased hard shadow (single ray, light radius 0)"
-    summary = ("the single-ray algorithm with a point light (004 §4.3.3): the cone from the surface sphere to the "
+    summary = ("the single-ray algorithm with a point light ([Bán 2019, §4.3.3]): the cone from the surface sphere to the "
                "light's centre gives a hard shadow whose edge is a ramp about one pixel wide")
-    params = (Param("variant", "linear", "choice", choices=("linear", "base"), source="004 §4.3.3",
+    params = (Param("variant", "linear", "choice", choices=("linear", "base"), source="[Bán 2019, §4.3.3]",
                     doc="the single-ray algorithm used (Algorithm 4 or 3)"),
               EPSILON, DIRECTION, I_MAX, AA_SURFACE_RADIUS)
 
@@ -237,9 +237,9 @@ class SDFQuilez(SDFTechnique):
     title = "SDF penumbra estimate of Quílez (2010) / Aaltonen (2018)"
     summary = ("sphere tracing toward the light's centre keeping min k·h/t (Aaltonen: the improved closest-approach "
                "estimate); k = 1/tanα of the light cone; the inner half of the penumbra comes out as umbra")
-    params = (Param("variant", "quilez2010", "choice", choices=soft.QUILEZ_VARIANTS, source="004 §6.4",
+    params = (Param("variant", "quilez2010", "choice", choices=soft.QUILEZ_VARIANTS, source="[Bán 2019, §6.4]",
                     doc="quilez2010: res = min(k·h/t); aaltonen2018: res = min(k·d/max(0, t − y)), y = h²/(2h_prev)"),
-              Param("k", 0.0, "float", 0.0, 1000.0, "", source="004 §6.4",
+              Param("k", 0.0, "float", 0.0, 1000.0, "", source="[Bán 2019, §6.4]",
                     doc="penumbra sharpness k; 0 = from the light size per point, k = √(d² − R²)/R = 1/tanα "
                         "(then k·h/t is the relative distance of the thesis)"),
               LIGHT_SCALE, I_MAX, HIT_EPS, SURFACE_RADIUS)
@@ -258,19 +258,19 @@ class SDFMC(SDFTechnique):
     title = "SDF Monte-Carlo visibility in the cone (Halton points)"
     summary = ("n sphere-traced shadow rays per point toward Halton points on the light's disk (polar: r-weighted or "
                "r = √u), Cranley–Patterson rotated per point; the thesis' reference method")
-    params = (Param("samples", 64, "int", 1, 4096, "rays per point", source="004 §3.3.1",
+    params = (Param("samples", 64, "int", 1, 4096, "rays per point", source="[Bán 2019, §3.3.1]",
                     doc="Halton points per shading point (64 in Fig. 6.3, 512 in Fig. 6.6)"),
-              Param("scheme", "sqrt", "choice", choices=soft.SCHEMES, source="004 §3.3.1",
+              Param("scheme", "sqrt", "choice", choices=soft.SCHEMES, source="[Bán 2019, §3.3.1]",
                     doc="polar sampling of the disk: r = √u (uniform) or r = u with weight r"),
-              Param("measure", "disk", "choice", choices=soft.MEASURES, source="004 §3.3.1",
+              Param("measure", "disk", "choice", choices=soft.MEASURES, source="[Bán 2019, §3.3.1]",
                     doc="disk: fraction of the disk's area (the thesis); solid_angle: weight cos³θ, the fraction of "
                         "the light's solid angle (Mitsuba's A)"),
-              Param("cosine", False, "bool", source="004 §5.1",
+              Param("cosine", False, "bool", source="[Bán 2019, §5.1]",
                     doc="also weight by max(0, n·ω): the ratio ∫v cos/∫cos of Eq. 5.1 (the truth's V for diffuse "
                         "surfaces)"),
-              Param("seed", 0, "int", 0, 1_000_000, source="004 §3.3",
+              Param("seed", 0, "int", 0, 1_000_000, source="[Bán 2019, §3.3]",
                     doc="seed of the per-point Cranley–Patterson rotation of the Halton set"),
-              LIGHT_SCALE_ND, Param("i_max", 512, "int", 1, 8192, "steps", source="004 Alg. 2",
+              LIGHT_SCALE_ND, Param("i_max", 512, "int", 1, 8192, "steps", source="[Bán 2019, Alg. 2]",
                                     doc="steps per shadow ray; a ray still marching after them counts as blocked"),
               HIT_EPS, SURFACE_RADIUS)
 
@@ -291,12 +291,12 @@ class SDFEdgeMC(SDFTechnique):
     summary = ("Eq. 5.1 by Mitsuba's light sampling, each sample's visibility from the single ray's occluder edge "
                "line (5.3.1, no scene intersection), or sphere-traced (5.1), or the separable Eq. 5.2; any light "
                "bounded by a sphere (5.4)")
-    params = (Param("estimator", "edge", "choice", choices=sdf_shading.ESTIMATORS, source="004 §5.2–5.3",
+    params = (Param("estimator", "edge", "choice", choices=sdf_shading.ESTIMATORS, source="[Bán 2019, §5.2–5.3]",
                     doc="edge: 5.3.1 (edge line from the minimum and the SDF gradient); traced: 5.1 with sphere-traced "
                         "samples; separable: Eq. 5.2, the single-ray fraction times the unshadowed light"),
-              Param("samples", 8, "int", 1, 64, "per side", source="004 §6.4",
+              Param("samples", 8, "int", 1, 64, "per side", source="[Bán 2019, §6.4]",
                     doc="s: s×s stratified light samples per point (Fig. 6.16 uses 50 and 150)"),
-              Param("seed", 0, "int", 0, 1_000_000, source="004 §5.3", doc="seed of the sample jitter"),
+              Param("seed", 0, "int", 0, 1_000_000, source="[Bán 2019, §5.3]", doc="seed of the sample jitter"),
               EPSILON, DIRECTION, I_MAX, HIT_EPS, SURFACE_RADIUS)
 
     def light_visibility(self, frame, sdf, light, o, R0, values):

@@ -70,7 +70,7 @@ import mitsuba as mi
 from ..errors import InputError
 from .base import LightResult, Param, Technique, param_table_markdown, register
 
-SOURCE = "003 §2.3"
+SOURCE = "[Buljan 2020, §2.3]"
 RES_MIN, RES_MAX = 64, 8192
 
 #: The shadow-map and bias parameters every shadow-map technique shares (hard, pcf, ...).
@@ -220,7 +220,7 @@ class ShadowMapTechnique(Technique):
     implement); ``texel``, ``receiver_bias`` and ``depth_bias`` AOVs and the map's stats
     (``maps``: resolution, depth bits, faces, texels, near, far) come with it."""
 
-    source = "003_b5589b67cce60746.txt"
+    source = "[Buljan 2020]"
 
     def resolve(self, overrides: dict | None = None) -> dict:
         values = super().resolve(overrides)

@@ -1,4 +1,4 @@
-"""Variance shadow maps (``vsm``), 003_b5589b67cce60746.txt §3.3 (Donnelly & Lauritzen 2006).
+"""Variance shadow maps (``vsm``), [Buljan 2020, §3.3] [Donnelly 2006].
 
 Store the first two moments (zn, zn²) of the normalised linear depth (the depth domain of
 :mod:`shadowlab.techniques.prefilter`), blur them with the separable prefilter, read them
@@ -41,8 +41,20 @@ gradients enabled; tests/test_moments.py compares with finite differences).
 from __future__ import annotations
 
 from .base import param_table_markdown, register
-from .prefilter import (BLEED, FILTER_PARAMS, MAP_PARAMS, MIN_VARIANCE, RECEIVER_PARAMS, PrefilteredTechnique,
-                        bilinear, blur, chebyshev, normalised_depth, reduction, scalar)
+from .prefilter import (
+    BLEED,
+    FILTER_PARAMS,
+    MAP_PARAMS,
+    MIN_VARIANCE,
+    RECEIVER_PARAMS,
+    PrefilteredTechnique,
+    bilinear,
+    blur,
+    chebyshev,
+    normalised_depth,
+    reduction,
+    scalar,
+)
 
 
 @register

@@ -1,5 +1,5 @@
 """The fitting goals, measured (never asserted in tests): ``shadowlab bench`` (section "Parameter
-fitting") or ``python -m shadowlab.fit.goals [--quick] [--out reports/bench]``.
+fitting") or ``python -m shadowlab.bench.fit [--quick] [--out reports/bench]``.
 
 Per scene (committed 128² references), ``pcss.light_scale`` with the default loss
 (``rmse_penumbra``) from three starts (s = 1, each light at its own size, 0.5·s and 2·s):
@@ -21,17 +21,16 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import time
 from pathlib import Path
 
-import drjit as dr
 import numpy as np
 
 from .. import backend
+from ..fit import run as R
+from ..fit.objective import Objective
 from ..io.jsonio import write_json_atomic
 from ..techniques.pcss import scene_light_size
-from . import run as R
-from .objective import Objective
+from .timing import timed
 
 SCENES = ("parallel_planes", "analytic_sphere", "contact", "cornell", "two_lights")
 STARTS = (1.0, 0.5, 2.0)
@@ -64,11 +63,8 @@ def scene_goals(name: str, starts=STARTS, grid_exp: int = GRID_EXP) -> dict:
     obj = Objective(frame, truth, R.plan("pcss", frame, params=["light_scale"]).tech, "rmse_penumbra")
     n = 2 ** grid_exp + 1
     xs = np.linspace(lo, hi, n)
-    dr.sync_thread()
-    t0 = time.perf_counter()
-    fs = np.array([obj.value({"light_scale": float(x)}) for x in xs])
-    dr.sync_thread()
-    t_grid = (time.perf_counter() - t0) / n
+    fs, (t_all,) = timed(lambda: np.array([obj.value({"light_scale": float(x)}) for x in xs]))
+    t_grid = t_all / n
     i = int(np.argmin(fs))
     h = (hi - lo) / (n - 1)
     xr = np.linspace(max(lo, xs[i] - h), min(hi, xs[i] + h), 41)
