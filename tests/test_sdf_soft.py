@@ -393,7 +393,7 @@ def test_every_variant_is_a_registered_technique_with_declared_params():
     for n in SDF_TECHNIQUES:
         assert n in names()
         t = get(n)
-        assert t.source.startswith("004") and t.params
+        assert t.source.startswith("[Bán 2019") and t.params
     assert get("sdf_linear").param("light_scale").differentiable
     assert not get("sdf_discrete").param("light_scale").differentiable
     with pytest.raises(InputError, match="epsilon"):

@@ -28,8 +28,6 @@ import numpy as np
 
 from .. import backend
 from ..errors import InputError
-from .fit import markdown as fit_markdown
-from .fit import measure as bench_fit
 from ..io.jsonio import write_json_atomic
 from ..pipeline import load_scene
 from ..reference.truth import visibility
@@ -37,6 +35,8 @@ from ..render.frame import make_frame
 from ..render.shading import sample_light
 from ..scene import load
 from ..techniques import base
+from .fit import markdown as fit_markdown
+from .fit import measure as bench_fit
 from .sdf import run as sdf_bench
 from .timing import timed
 

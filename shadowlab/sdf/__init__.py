@@ -15,23 +15,8 @@ What needs a scene lives elsewhere: a scene's SDF and its ``[[sdf]]`` tables in
 :mod:`shadowlab.reference.sdf_truth`, the techniques in :mod:`shadowlab.techniques.sdf_shadows`.
 """
 
-from .field import (
-    SDF,
-    Box,
-    Capsule,
-    Cylinder,
-    Difference,
-    Intersection,
-    Mandelbulb,
-    Offset,
-    Plane,
-    Segment,
-    Sphere,
-    Transformed,
-    Union,
-    transform,
-    twin_of,
-)
+from .field import (SDF, Box, Capsule, Cylinder, Difference, Intersection, Mandelbulb, Offset, Plane, Segment, Sphere,
+                    Transformed, Union, transform, twin_of)
 from .trace import cone_trace, hard_visibility, sphere_trace
 
 __all__ = ["SDF", "Box", "Capsule", "Cylinder", "Difference", "Intersection", "Mandelbulb", "Offset", "Plane",

@@ -60,20 +60,8 @@ import drjit as dr
 
 from ..errors import InputError
 from .base import Param, param_table_markdown, register
-from .prefilter import (
-    FILTER_PARAMS,
-    MAP_PARAMS,
-    RASTER_PARAMS,
-    RECEIVER_PARAMS,
-    PrefilteredTechnique,
-    bilinear,
-    blur,
-    corner_max,
-    max_filter,
-    normalised_depth,
-    pcf_footprint,
-    scalar,
-)
+from .prefilter import (FILTER_PARAMS, MAP_PARAMS, RASTER_PARAMS, RECEIVER_PARAMS, PrefilteredTechnique, bilinear, blur,
+                        corner_max, max_filter, normalised_depth, pcf_footprint, scalar)
 
 #: ln(FLT_MAX): the largest c for which exp(c·z), z ≤ 1, is a finite fp32 number
 FP32_EXP_LIMIT = 88.72

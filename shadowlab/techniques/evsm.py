@@ -46,20 +46,8 @@ import drjit as dr
 
 from .base import Param, param_table_markdown, register
 from .esm import FP32_EXP_LIMIT, fp32_cap_error
-from .prefilter import (
-    BLEED,
-    FILTER_PARAMS,
-    MAP_PARAMS,
-    MIN_VARIANCE,
-    RECEIVER_PARAMS,
-    PrefilteredTechnique,
-    bilinear,
-    blur,
-    chebyshev,
-    normalised_depth,
-    reduction,
-    scalar,
-)
+from .prefilter import (BLEED, FILTER_PARAMS, MAP_PARAMS, MIN_VARIANCE, RECEIVER_PARAMS, PrefilteredTechnique, bilinear,
+                        blur, chebyshev, normalised_depth, reduction, scalar)
 
 #: exp(2k) must be a finite fp32 number
 EVSM_EXP_LIMIT = 44.36

@@ -47,18 +47,8 @@ from __future__ import annotations
 import drjit as dr
 
 from .base import Param, param_table_markdown, register
-from .prefilter import (
-    BLEED,
-    FILTER_PARAMS,
-    MAP_PARAMS,
-    RECEIVER_PARAMS,
-    PrefilteredTechnique,
-    bilinear,
-    blur,
-    normalised_depth,
-    reduction,
-    scalar,
-)
+from .prefilter import (BLEED, FILTER_PARAMS, MAP_PARAMS, RECEIVER_PARAMS, PrefilteredTechnique, bilinear, blur,
+                        normalised_depth, reduction, scalar)
 
 _EPS = 1e-20
 

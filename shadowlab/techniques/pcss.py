@@ -137,16 +137,8 @@ import numpy as np
 from ..errors import InputError
 from ._random import uniform as _uniform
 from .base import LightResult, Param, Pooled, light_scale_param, param_table_markdown, register, scaled_size
-from .shadow_map import (
-    BIAS_PARAMS,
-    ShadowMapTechnique,
-    map_entry,
-    map_stats,
-    receiver,
-    stored_depth,
-    texel_index,
-    view_for,
-)
+from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, map_entry, map_stats, receiver, stored_depth, texel_index,
+                         view_for)
 
 SOURCE = "[Buljan 2020, §3.6]"
 BLOCKER_COUNTS = (16, 25, 32)

@@ -41,20 +41,8 @@ gradients enabled; tests/test_moments.py compares with finite differences).
 from __future__ import annotations
 
 from .base import param_table_markdown, register
-from .prefilter import (
-    BLEED,
-    FILTER_PARAMS,
-    MAP_PARAMS,
-    MIN_VARIANCE,
-    RECEIVER_PARAMS,
-    PrefilteredTechnique,
-    bilinear,
-    blur,
-    chebyshev,
-    normalised_depth,
-    reduction,
-    scalar,
-)
+from .prefilter import (BLEED, FILTER_PARAMS, MAP_PARAMS, MIN_VARIANCE, RECEIVER_PARAMS, PrefilteredTechnique, bilinear,
+                        blur, chebyshev, normalised_depth, reduction, scalar)
 
 
 @register
