@@ -78,12 +78,22 @@ def reference(scene: str = typer.Argument(..., help="Built-in scene name or path
               target_se: float = typer.Option(0.005, "--target-se", help="Per-pixel standard error to reach."),
               spp: int = typer.Option(256, "--spp", help="Samples per pixel of the mi.render image."),
               ss: int = typer.Option(1, "--ss", min=1, max=8, help="s×s shading points per pixel (supersampling)."),
+              max_rounds: int = typer.Option(64, "--max-rounds", min=1, max=4096, help="Round cap of a penumbra "
+                                             "pixel (8×8 shadow rays per round per light)."),
               variant: Optional[str] = VariantOpt):
     """Render and store the Mitsuba ground truth of a scene."""
     _init(variant)
-    path, meta = ref(scene, parse_resolution(resolution), force=force, seed=seed, target_se=target_se, spp=spp, ss=ss)
+    path, meta = ref(scene, parse_resolution(resolution), force=force, seed=seed, target_se=target_se, spp=spp, ss=ss,
+                     max_rounds=max_rounds)
     typer.echo(f"reference written to {path}: worst standard error {meta['max_std_error']:.4f}, "
                f"{meta['samples']['shadow_rays']:,} shadow rays, {meta['wall_time_s']:.1f} s")
+    tm = meta.get("target_missed") or {}
+    if tm.get("pixels"):
+        per = ", ".join(f"{n} {v['pixels']}" for n, v in tm["lights"].items())
+        typer.echo(f"warning: {tm['pixels']} pixels ({per}) kept a standard error above the target {tm['target_se']:g} "
+                   f"after the round cap of {tm['max_rounds']} rounds (worst {tm['worst_se']:.4f}; recorded in "
+                   f"meta.json under target_missed); raise the cap with --max-rounds {min(4096, 4 * tm['max_rounds'])} "
+                   "--force", err=True)
 
 
 @app.command()
@@ -91,8 +101,10 @@ def references():
     """List the stored references."""
     for r in list_references():
         m = r["meta"]
-        typer.echo(f"{r['scene']:18s} {r['resolution']:10s} worst se {m.get('max_std_error', float('nan')):.4f}  "
-                   f"seed {m.get('seed')}  {r['path']}")
+        se = m.get("max_std_error")
+        se = f"{se:.4f}" if isinstance(se, (int, float)) and not isinstance(se, bool) else "   n/a"
+        typer.echo(f"{r['scene']:18s} {r['resolution']:10s} worst se {se}  seed {m.get('seed')}  {r['path']}"
+                   + "".join(f"\n{'':18s} {p}" for p in r["status"]))
 
 
 def _compare(scene, techs, sets, out, resolution, variant, preset=None):

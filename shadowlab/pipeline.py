@@ -6,6 +6,8 @@
 
 from __future__ import annotations
 
+import os
+import sys
 import time
 from pathlib import Path
 
@@ -16,11 +18,12 @@ from . import backend
 from .errors import InputError, ReferenceError_
 from .metrics import compare_shaded, penumbra_mask, pooled_visibility
 from .reference import sdf_truth, store
-from .reference.truth import render_truth
+from .reference.truth import render_truth, target_missed
 from .render.frame import make_frame
 from .render.shading import compose
 from .report import build
 from .scene import load
+from .scene.spec import builtin_dir
 from .techniques import base as tbase
 
 
@@ -58,9 +61,19 @@ def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0
     ``ss``: s×s sub-pixel shading points per pixel (G-buffer supersampling); techniques compared
     with this reference are evaluated at the same points."""
     sc = load_scene(scene, resolution)
-    dest = store.path_for(sc.name, sc.resolution, base)
-    if dest.exists() and not force:
-        raise ReferenceError_(f"a reference already exists at {dest}; pass --force to replace it")
+    if base is None and os.environ.get(store.ROOT_ENV) and not Path(os.environ[store.ROOT_ENV]).is_dir():
+        print(f"note: {store.ROOT_ENV}={os.environ[store.ROOT_ENV]} does not exist; creating a new reference "
+              "store there", file=sys.stderr)
+    dest = store.path_for(sc.name, sc.resolution, base, create=True)
+    with store.writing(dest, force=force, scene_name=sc.name, resolution=sc.resolution):
+        truth, meta = _render_reference(sc, seed=seed, target_se=target_se, strata=strata, max_rounds=max_rounds,
+                                        spp=spp, progress=progress, ss=ss)
+        path = store.save(truth, meta, dest, force=force)
+    return path, meta
+
+
+def _render_reference(sc, *, seed, target_se, strata, max_rounds, spp, progress, ss):
+    """(Truth, meta.json dict) of a loaded scene."""
     t0 = time.perf_counter()
     frame = make_frame(sc, ss=ss, seed=seed)
     with _progress_bar(None, f"truth {sc.name}", progress) as bar:
@@ -85,8 +98,11 @@ def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0
         meta.update(truth=sdf_truth.TRUTH_KIND, not_mitsuba_truth=sdf_truth.NOTE)
         meta["samples"] = {"mc_cone_samples": truth.stats["mc_cone_samples"], "shadow_rays": truth.stats["shadow_rays"],
                            "mean_rays_per_pixel": meta["samples"]["mean_rays_per_pixel"], "mitsuba_spp": 0}
-    path = store.save(truth, meta, dest, force=force)
-    return path, meta
+    if sc.kind != "sdf":
+        meta["target_missed"] = target_missed(truth, target_se, max_rounds)
+    if sc.spec.source and Path(sc.spec.source).resolve().parent != builtin_dir().resolve():
+        meta["scene_file"] = str(Path(sc.spec.source).resolve())
+    return truth, meta
 
 
 def run_techniques(frame, names: list[str], params: dict) -> dict:
@@ -130,11 +146,12 @@ def technique_metrics(frame, truth, result) -> tuple[dict, dict, dict]:
 
 
 def compare(scene: str, techniques: list[str], sets: list[str] | None = None, out: Path | None = None,
-            resolution=None, *, render_missing: bool = True, progress: bool = True, base: Path | None = None,
+            resolution=None, *, render_missing: bool = False, progress: bool = True, base: Path | None = None,
             params: dict | None = None, preset: dict | None = None) -> dict:
     """Compare ``techniques`` with the stored truth of ``scene``; write a report to ``out``.
 
-    A missing reference is rendered and stored first (``render_missing``); a stale one is an error.
+    A missing reference is an error (exit 2) naming the ``shadowlab reference`` command that makes it,
+    as is a stale or damaged one; ``render_missing=True`` renders and stores a missing one first.
     ``params``: {technique: {param: value}} applied under ``sets`` (e.g. a preset's values);
     ``preset``: {name, path, values} of that preset, recorded in the run (metrics.json, report).
     """

@@ -6,40 +6,220 @@ its standard error), ``A.<light>``, ``A.<light>.se`` (plain visible fraction), `
 ``U.<light>.R|G|B`` (unshadowed radiance), ``shaded.R|G|B`` and ``shaded.var.R|G|B`` (Σ U·V),
 ``mitsuba.R|G|B`` and ``mitsuba.var.R|G|B`` (mi.render, direct integrator), ``mask``, ``depth``.
 
-Writes are atomic: a new reference is built in a temporary sibling directory and renamed into
-place; an existing reference is only replaced with ``force=True``; an interrupted render
-leaves the previous reference as it was. A reference whose scene hash differs from the scene
-file is reported (:class:`ReferenceError_`), never used silently.
+Safety rules (each one tested in tests/test_store_faults.py):
+
+* **One writer per reference.** Writes take an exclusive ``fcntl`` lock on
+  ``<store>/.locks/<scene>.<W>x<H>.lock`` for the whole render and save; the lock file names its
+  holder (pid, host, time, command). A second writer fails at once (:class:`ReferenceError_`,
+  exit 2) naming the holder, so create-if-absent is atomic and a no-force run never meets a
+  half-done ``--force`` swap.
+* **Never no reference.** A new reference is built in a temporary sibling directory
+  ``.<W>x<H>.tmp-*`` and exchanged with the old one in one atomic ``renameat2(RENAME_EXCHANGE)``
+  (Linux); where the file system lacks it, the old directory is first renamed to
+  ``.<W>x<H>.old-<pid>`` and the new one renamed into place. A process killed at any instant
+  leaves the old reference or the new one in place, or (between the two renames of the fallback)
+  the old one under ``.old-<pid>``: the next writer, and every reader, restores it and deletes
+  the other leftovers (:func:`recover`). Leftovers are never listed as references.
+* **Integrity.** ``meta.json`` records ``truth_sha256``, the SHA-256 of ``truth.exr``'s bytes
+  (``sha256sum truth.exr``); every read verifies it. References written before the checksum
+  existed have no such key and are read unverified (the committed ones have it).
+* **Validation.** A reader checks meta.json's keys and types, and that truth.exr holds every
+  channel at the stored resolution; a missing file, key or channel is an error that names it and
+  the fix (re-render with ``--force``), never a traceback. A reference whose scene hash differs
+  from the scene file is reported, never used.
 """
 
 from __future__ import annotations
 
+import ctypes
+import errno
+import fcntl
+import hashlib
+import json
 import os
+import re
 import shutil
+import socket
+import sys
 import tempfile
+import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import ReferenceError_
+from ..errors import ReferenceError_, ShadowlabError
 from ..io.exr import read_exr, write_exr
 from ..io.jsonio import read_json, write_json_atomic
+from ..scene.spec import load_spec, resolve
 from .truth import LightTruth, Truth
 
 ROOT_ENV = "SHADOWLAB_REFERENCES"
+LOCK_DIR = ".locks"
+CHECKSUM_KEY = "truth_sha256"
+FILES = ("truth.exr", "meta.json")
+_RES_DIR = re.compile(r"^[0-9]+x[0-9]+$")
+_HELD: dict[str, int] = {}   # lock file path -> fd, locks this process holds (re-entrant)
 
 
-def root() -> Path:
-    """Where references live: ``$SHADOWLAB_REFERENCES`` or ``references/`` at the repository top."""
+def _checkpoint(point: str) -> None:
+    """Called at each step of :func:`save`; tests replace it to interrupt a save right there.
+
+    Points, in order: ``tmp-created``, ``exr-written``, ``meta-written``, then either
+    ``exchanged`` (the atomic swap) or ``old-moved`` and ``new-placed`` (the two-rename fallback),
+    then ``done``."""
+
+
+def root(create: bool = False) -> Path:
+    """Where references live: ``$SHADOWLAB_REFERENCES`` or ``references/`` at the repository top.
+
+    A ``$SHADOWLAB_REFERENCES`` that does not exist is refused (a misspelt path would otherwise
+    start an empty store) unless ``create`` (``shadowlab reference`` creates a new store)."""
     env = os.environ.get(ROOT_ENV)
-    return Path(env) if env else Path(__file__).resolve().parents[2] / "references"
+    if not env:
+        return Path(__file__).resolve().parents[2] / "references"
+    p = Path(env)
+    if not create and not p.is_dir():
+        raise ReferenceError_(f"{ROOT_ENV}={env} is not a directory: no reference store there; check the "
+                              f"spelling, or unset {ROOT_ENV} to use the default store. `shadowlab reference "
+                              f"SCENE` creates a new store at that path")
+    return p
 
 
-def path_for(scene_name: str, resolution, base: Path | None = None) -> Path:
+def path_for(scene_name: str, resolution, base: Path | None = None, create: bool = False) -> Path:
     W, H = resolution
-    return (base or root()) / scene_name / f"{W}x{H}"
+    return Path(base or root(create)) / scene_name / f"{W}x{H}"
 
 
+def reference_command(scene_name: str, resolution) -> str:
+    return f"shadowlab reference {scene_name} --resolution {resolution[0]}x{resolution[1]}"
+
+
+# ------------------------------------------------------------------------------------- locking
+def lock_path(dest: Path) -> Path:
+    """The lock file of the reference directory ``dest`` (``<store>/.locks/<scene>.<WxH>.lock``)."""
+    dest = Path(dest)
+    return dest.parent.parent / LOCK_DIR / f"{dest.parent.name}.{dest.name}.lock"
+
+
+def _holder_text(fd: int) -> str:
+    """Who holds a lock, from the lock file (written right after the holder took it)."""
+    for _ in range(40):
+        try:
+            raw = os.pread(fd, 4096, 0)
+        except OSError:
+            raw = b""
+        if raw.strip():
+            try:
+                h = json.loads(raw)
+                return (f"pid {h.get('pid')} on host {h.get('host')}, since {h.get('time')}"
+                        + (f": `{h['command']}`" if h.get("command") else ""))
+            except (ValueError, AttributeError):
+                pass
+        time.sleep(0.025)
+    return "a process that has not yet written its name into the lock"
+
+
+def _unwritable(where: Path, exc: OSError) -> ReferenceError_:
+    return ReferenceError_(f"cannot write to the reference store at {where}: {exc.strerror or exc}; make it "
+                           f"writable (e.g. `chmod -R u+w {where}`) or point {ROOT_ENV} at a writable directory")
+
+
+@contextmanager
+def locked(dest: Path, role: str = "write"):
+    """Hold the exclusive lock of reference directory ``dest`` (re-entrant within a process).
+
+    Raises :class:`ReferenceError_` naming the holder if another process has it, or naming the
+    store if the lock file cannot be created (a read-only store)."""
+    lp = lock_path(dest)
+    key = str(lp.resolve())
+    if key in _HELD:
+        yield
+        return
+    try:
+        lp.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(lp, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as e:
+        raise _unwritable(lp.parent.parent, e) from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ReferenceError_(f"the reference at {dest} is being written by another process ({_holder_text(fd)}); "
+                                  f"wait until it has finished and run again (lock file {lp})") from None
+        prog = "shadowlab" if sys.argv[0].endswith(("shadowlab", "cli.py")) else os.path.basename(sys.argv[0])
+        info = {"pid": os.getpid(), "host": socket.gethostname(), "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                "role": role, "command": " ".join([prog, *sys.argv[1:]])[:300]}
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps(info).encode(), 0)
+        _HELD[key] = fd
+        try:
+            yield
+        finally:
+            del _HELD[key]
+            try:
+                os.ftruncate(fd, 0)
+            except OSError:
+                pass
+    finally:
+        os.close(fd)  # releases the flock
+
+
+# ------------------------------------------------------------------------------- crash recovery
+def _leftovers(dest: Path) -> list[Path]:
+    if not dest.parent.is_dir():
+        return []
+    pre = f".{dest.name}."
+    return sorted(p for p in dest.parent.iterdir()
+                  if p.name.startswith(pre) and (".tmp-" in p.name or ".old-" in p.name) and p.is_dir())
+
+
+def _complete(d: Path) -> bool:
+    return all((d / f).is_file() for f in FILES)
+
+
+def _recover_locked(dest: Path) -> str | None:
+    """With the lock held: restore ``dest`` from an ``.old-*`` directory if a save was killed
+    between its two renames, then delete every leftover. Returns a note when it restored."""
+    note = None
+    left = _leftovers(dest)
+    if not dest.exists():
+        olds = [p for p in left if ".old-" in p.name and _complete(p)]
+        if olds:
+            src = max(olds, key=lambda p: p.stat().st_mtime)
+            os.rename(src, dest)
+            left.remove(src)
+            note = f"restored the reference at {dest} from {src.name} (left by an interrupted save)"
+    for p in left:
+        shutil.rmtree(p, ignore_errors=True)
+    return note
+
+
+def recover(dest: Path, wait_s: float = 5.0) -> str | None:
+    """Clean up after an interrupted save of ``dest`` (see the module docstring); a no-op, with
+    no lock taken, when nothing is left over. Readers call it: if a writer holds the lock while
+    ``dest`` is missing (between the fallback's two renames), wait up to ``wait_s`` for it."""
+    dest = Path(dest)
+    deadline = time.monotonic() + wait_s
+    while _leftovers(dest):
+        try:
+            with locked(dest, role="recover"):
+                return _recover_locked(dest)
+        except ReferenceError_ as e:
+            if "being written" not in str(e):
+                return None  # a read-only store: nothing can be cleaned; reading still works
+            if dest.exists() or time.monotonic() > deadline:
+                return None  # a live writer owns the leftovers
+            time.sleep(0.05)
+    return None
+
+
+def _note(text: str | None) -> None:
+    if text:
+        print(f"note: {text}", file=sys.stderr)
+
+
+# ---------------------------------------------------------------------------------- writing
 def _channels(truth: Truth) -> dict:
     ch = {}
     for name, lt in truth.lights.items():
@@ -59,53 +239,213 @@ def _channels(truth: Truth) -> dict:
     return ch
 
 
-def save(truth: Truth, meta: dict, dest: Path, force: bool = False) -> Path:
-    """Write ``truth`` + ``meta`` to ``dest`` atomically (see module docstring)."""
+def sha256_file(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def check_writable(dest: Path, force: bool = False, scene_name: str | None = None, resolution=None) -> None:
+    """Raise unless a reference may be written at ``dest``: absent, or ``force``. Call with the lock held."""
     dest = Path(dest)
-    if dest.exists() and not force:
-        raise ReferenceError_(f"a reference already exists at {dest}; pass --force to replace it")
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.tmp-", dir=dest.parent))
-    try:
-        write_exr(tmp / "truth.exr", _channels(truth))
-        write_json_atomic(tmp / "meta.json", meta)
-        os.chmod(tmp, 0o755)
-        for f in tmp.iterdir():
-            os.chmod(f, 0o644)
+    if not dest.exists() or force:
+        return
+    cmd = reference_command(scene_name or dest.parent.name, resolution or dest.name.split("x"))
+    missing = [f for f in FILES if not (dest / f).is_file()]
+    if missing:
+        raise ReferenceError_(f"the reference at {dest} is incomplete ({' and '.join(missing)} missing); "
+                              f"replace it with `{cmd} --force`")
+    raise ReferenceError_(f"a reference already exists at {dest}; pass --force to replace it (`{cmd} --force`)")
+
+
+@contextmanager
+def writing(dest: Path, force: bool = False, scene_name: str | None = None, resolution=None):
+    """Lock ``dest`` for a render and save: clean up after an interrupted save, then check that
+    a reference may be written there (:func:`check_writable`). The lock is held until the block ends."""
+    dest = Path(dest)
+    with locked(dest):
+        _note(_recover_locked(dest))
+        check_writable(dest, force, scene_name, resolution)
+        yield dest
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two directories atomically (Linux ``renameat2(RENAME_EXCHANGE)``); False if unsupported."""
+    fn = getattr(_LIBC, "renameat2", None) if _LIBC is not None else None
+    if fn is None:
+        return False
+    if fn(-100, os.fsencode(str(a)), -100, os.fsencode(str(b)), 2) == 0:  # AT_FDCWD, RENAME_EXCHANGE
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+try:
+    _LIBC = ctypes.CDLL(None, use_errno=True)
+except OSError:  # no C library to load: the two-rename fallback
+    _LIBC = None
+
+
+def save(truth: Truth, meta: dict, dest: Path, force: bool = False) -> Path:
+    """Write ``truth`` + ``meta`` to ``dest`` (see the module docstring); adds ``truth_sha256`` to ``meta``."""
+    dest = Path(dest)
+    with writing(dest, force):
+        try:
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.tmp-{os.getpid()}-", dir=dest.parent))
+        except OSError as e:
+            raise _unwritable(dest.parent, e) from None
         old = None
-        if dest.exists():
-            old = dest.parent / f".{dest.name}.old-{os.getpid()}"
-            os.replace(dest, old)
-        os.replace(tmp, dest)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        try:
+            _checkpoint("tmp-created")
+            write_exr(tmp / "truth.exr", _channels(truth))
+            _checkpoint("exr-written")
+            meta[CHECKSUM_KEY] = sha256_file(tmp / "truth.exr")
+            write_json_atomic(tmp / "meta.json", meta)
+            _checkpoint("meta-written")
+            try:
+                os.chmod(tmp, 0o755)
+                for f in tmp.iterdir():
+                    os.chmod(f, 0o644)
+                if dest.exists() and _exchange(tmp, dest):
+                    _checkpoint("exchanged")  # tmp now holds the old reference
+                else:
+                    if dest.exists():
+                        old = dest.parent / f".{dest.name}.old-{os.getpid()}"
+                        os.rename(dest, old)
+                        _checkpoint("old-moved")
+                    os.rename(tmp, dest)
+                    _checkpoint("new-placed")
+            except OSError as e:
+                raise _unwritable(dest.parent, e) from None
+        except BaseException:
+            if old is not None and not dest.exists() and old.exists():
+                os.rename(old, dest)  # put the old reference back
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        shutil.rmtree(old if old is not None else tmp, ignore_errors=True)
+        _checkpoint("done")
     return dest
 
 
+# ---------------------------------------------------------------------------------- reading
+_NUM = (int, float)
+
+
+def _is(v, types) -> bool:
+    return isinstance(v, types) and not isinstance(v, bool)
+
+
+def check_meta(meta, where: Path, cmd: str) -> None:
+    """Raise :class:`ReferenceError_` if a reference's meta.json lacks a key a reader uses or has
+    one of the wrong type; the message names the file, the key and the fix."""
+    def bad(key, want):
+        got = "missing" if key not in m else f"{type(m[key]).__name__} {m[key]!r}"[:80]
+        return ReferenceError_(f"{where}: key {prefix}{key} must be {want}, got {got}; the reference is damaged, "
+                               f"re-render it with `{cmd} --force`")
+
+    m, prefix = meta, ""
+    if not isinstance(meta, dict):
+        raise ReferenceError_(f"{where} holds a JSON {type(meta).__name__}, not an object; re-render the reference "
+                              f"with `{cmd} --force`")
+    if not _is(m.get("scene_hash"), str):
+        raise bad("scene_hash", "a string")
+    r = m.get("resolution")
+    if not (isinstance(r, list) and len(r) == 2 and all(_is(x, int) and x > 0 for x in r)):
+        raise bad("resolution", "[WIDTH, HEIGHT]")
+    if not _is(m.get("max_std_error"), _NUM):
+        raise bad("max_std_error", "a number")
+    for k in ("seed", "supersampling"):
+        if k in m and not _is(m[k], int):
+            raise bad(k, "an integer")
+    if "supersampling" in m and m["supersampling"] < 1:
+        raise bad("supersampling", "an integer ≥ 1")
+    if CHECKSUM_KEY in m and not (_is(m[CHECKSUM_KEY], str) and re.fullmatch(r"[0-9a-f]{64}", m[CHECKSUM_KEY])):
+        raise bad(CHECKSUM_KEY, "a hex SHA-256")
+    if "stats" in m and not isinstance(m["stats"], dict):
+        raise bad("stats", "an object")
+    if not isinstance(m.get("samples"), dict):
+        raise bad("samples", "an object")
+    m, prefix = meta["samples"], "samples."
+    if not _is(m.get("shadow_rays"), int):
+        raise bad("shadow_rays", "an integer")
+    rpp = m.get("mean_rays_per_pixel")
+    if not (isinstance(rpp, dict) and rpp and all(_is(v, _NUM) for v in rpp.values())):
+        raise bad("mean_rays_per_pixel", "an object {light: number}")
+
+
+def _problem(d: Path) -> str | None:
+    missing = [f for f in FILES if not (d / f).is_file()]
+    return f"{' and '.join(missing)} missing" if missing else None
+
+
+def _read(d: Path, cmd: str):
+    """(meta, channels) of the reference directory ``d``, validated and checksum-verified."""
+    for attempt in range(3):
+        meta = read_json(d / "meta.json")
+        check_meta(meta, d / "meta.json", cmd)
+        want = meta.get(CHECKSUM_KEY)
+        if want is not None:
+            try:
+                have = sha256_file(d / "truth.exr")
+            except OSError as e:
+                raise ReferenceError_(f"cannot read {d / 'truth.exr'}: {e.strerror}; re-render it with `{cmd} --force`") \
+                    from None
+            if have != want:
+                if attempt < 2 and read_json(d / "meta.json").get(CHECKSUM_KEY) != want:
+                    continue  # a writer swapped the reference in between: read the new one
+                raise ReferenceError_(f"{d / 'truth.exr'} does not match the checksum in {d / 'meta.json'} "
+                                      f"(sha256 {have[:12]}… ≠ {want[:12]}…): it was changed after it was "
+                                      f"rendered; re-render it with `{cmd} --force`")
+        try:
+            ch = read_exr(d / "truth.exr")
+        except ShadowlabError as e:
+            raise ReferenceError_(f"{e} (re-render with `{cmd} --force`)") from None
+        if want is None or read_json(d / "meta.json").get(CHECKSUM_KEY) == want:
+            return meta, ch
+    raise ReferenceError_(f"the reference at {d} changed three times while it was read; run again when "
+                          "the writer has finished")
+
+
 def load(scene_spec, resolution=None, base: Path | None = None, check_hash: bool = True):
-    """(Truth, meta) of a scene's stored reference; raises ReferenceError_ if missing or stale."""
+    """(Truth, meta) of a scene's stored reference; raises ReferenceError_ if missing, incomplete,
+    damaged (checksum, keys, channels, size) or stale."""
     res = tuple(resolution or scene_spec.camera.resolution)
     d = path_for(scene_spec.name, res, base)
-    cmd = f"shadowlab reference {scene_spec.name} --resolution {res[0]}x{res[1]}"
-    if not (d / "truth.exr").exists() or not (d / "meta.json").exists():
-        have = sorted(p.name for p in d.parent.glob("*x*")) if d.parent.exists() else []
+    cmd = reference_command(scene_spec.name, res)
+    _note(recover(d))
+    if not d.exists():
+        have = sorted(p.name for p in d.parent.iterdir() if _RES_DIR.match(p.name)) if d.parent.is_dir() else []
         raise ReferenceError_(f"no reference for scene {scene_spec.name!r} at {res[0]}x{res[1]} (looked in {d})"
                               + (f"; stored resolutions: {', '.join(have)}" if have else "")
                               + f"; render one with `{cmd}`")
-    meta = read_json(d / "meta.json")
+    problem = _problem(d)
+    if problem:
+        raise ReferenceError_(f"the reference at {d} is incomplete ({problem}); re-render it with `{cmd} --force`")
+    meta, ch = _read(d, cmd)
     if check_hash and meta.get("scene_hash") != scene_spec.digest():
         raise ReferenceError_(f"the reference at {d} was rendered from a different version of scene "
                               f"{scene_spec.name!r} (scene hash {str(meta.get('scene_hash'))[:12]}… ≠ "
                               f"{scene_spec.digest()[:12]}…); re-render it with `{cmd} --force`")
-    ch = read_exr(d / "truth.exr")
+    exr = d / "truth.exr"
+    shapes = {a.shape for a in ch.values()}
+    if shapes != {(res[1], res[0])}:
+        raise ReferenceError_(f"{exr} is {'/'.join(f'{s[1]}x{s[0]}' for s in sorted(shapes))}, not {res[0]}x{res[1]}: "
+                              f"it does not belong in {d}; re-render it with `{cmd} --force`")
+    need = ["mask", "depth", *(f"{p}.{c}" for p in ("shaded", "shaded.var") for c in "RGB")]
+    for l in scene_spec.lights:
+        n = l.name
+        need += [f"V.{n}", f"V.{n}.se", f"A.{n}", f"A.{n}.se", f"N.{n}", f"B.{n}", *(f"U.{n}.{c}" for c in "RGB")]
+    missing = [c for c in need if c not in ch]
+    if missing:
+        raise ReferenceError_(f"{exr} has no channel {', '.join(missing[:6])}{' …' if len(missing) > 6 else ''}; "
+                              f"re-render with `{cmd} --force`")
+    if ("mitsuba.R" in ch) and any(f"{p}.{c}" not in ch for p in ("mitsuba", "mitsuba.var") for c in "RGB"):
+        raise ReferenceError_(f"{exr} has an incomplete mitsuba image (mitsuba.R|G|B and mitsuba.var.R|G|B); "
+                              f"re-render with `{cmd} --force`")
     lights, U = {}, {}
     for l in scene_spec.lights:
         n = l.name
-        if f"V.{n}" not in ch:
-            raise ReferenceError_(f"{d / 'truth.exr'} has no channel V.{n}; re-render with `{cmd} --force`")
         lights[n] = LightTruth(V=ch[f"V.{n}"], V_se=ch[f"V.{n}.se"], A=ch[f"A.{n}"], A_se=ch[f"A.{n}.se"],
                                samples=ch[f"N.{n}"], bound=ch[f"B.{n}"])
         U[n] = np.stack([ch[f"U.{n}.{c}"] for c in "RGB"], -1)
@@ -115,14 +455,66 @@ def load(scene_spec, resolution=None, base: Path | None = None, check_hash: bool
     return truth, meta
 
 
-def list_references(base: Path | None = None) -> list[dict]:
-    """Every stored reference: scene, resolution, path, meta."""
+# ---------------------------------------------------------------------------------- listing
+def _scene_file(scene: str, meta: dict) -> Path | None:
+    f = meta.get("scene_file")
+    if isinstance(f, str) and Path(f).is_file():
+        return Path(f)
+    try:
+        p = resolve(scene)
+    except ShadowlabError:
+        return None
+    return p if p.is_file() else None
+
+
+def _status(d: Path, scene: str, meta) -> list[str]:
+    """Problems of one listed reference (empty: fine)."""
+    res = tuple(int(x) for x in d.name.split("x"))
+    cmd = reference_command(scene, res)
+    problem = _problem(d)
+    if problem:
+        return [f"incomplete: {problem}; re-render with `{cmd} --force`"]
+    try:
+        check_meta(meta, d / "meta.json", cmd)
+    except ReferenceError_:
+        return [f"damaged meta.json; re-render with `{cmd} --force`"]
     out = []
-    r = base or root()
-    for m in sorted(r.glob("*/*x*/meta.json")):
+    want = meta.get(CHECKSUM_KEY)
+    if want is None:
+        out.append("no checksum (written before checksums)")
+    elif sha256_file(d / "truth.exr") != want:
+        out.append(f"checksum mismatch: truth.exr was changed; re-render with `{cmd} --force`")
+    sf = _scene_file(scene, meta)
+    if sf is None:
+        out.append("scene file not found: freshness not checked")
+    else:
         try:
-            meta = read_json(m)
-        except Exception:  # a broken meta is listed as such, not fatal
-            meta = {"error": "unreadable meta.json"}
-        out.append({"scene": m.parent.parent.name, "resolution": m.parent.name, "path": str(m.parent), "meta": meta})
+            fresh = load_spec(sf).with_resolution(*res).digest() == meta["scene_hash"]
+        except ShadowlabError:
+            out.append(f"scene file {sf} does not load: freshness not checked")
+        else:
+            if not fresh:
+                out.append(f"stale: scene {scene!r} changed since; re-render with `{cmd} --force`")
+    tm = meta.get("target_missed")
+    if isinstance(tm, dict) and tm.get("pixels"):
+        out.append(f"{tm['pixels']} pixels above the target standard error (worst {tm.get('worst_se', float('nan')):.4f})")
+    return out
+
+
+def list_references(base: Path | None = None) -> list[dict]:
+    """Every stored reference: scene, resolution, path, meta and ``status`` (a list of problems:
+    incomplete, damaged, stale, checksum mismatch, ...; empty when the reference is fine).
+    Temporary and leftover directories of interrupted saves are not references and are not listed."""
+    out = []
+    r = Path(base or root())
+    if not r.is_dir():
+        return out
+    for sd in sorted(p for p in r.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        for d in sorted(p for p in sd.iterdir() if p.is_dir() and _RES_DIR.match(p.name)):
+            try:
+                meta = read_json(d / "meta.json") if (d / "meta.json").is_file() else {}
+            except ShadowlabError:  # a broken meta is listed as such, not fatal
+                meta = {"error": "unreadable meta.json"}
+            out.append({"scene": sd.name, "resolution": d.name, "path": str(d), "meta": meta,
+                        "status": _status(d, sd.name, meta)})
     return out

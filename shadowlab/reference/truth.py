@@ -185,3 +185,23 @@ def render_truth(frame: FrameContext, *, k: int = 8, target_se: float = 0.005, m
     return Truth(lights=lights, U=U, shaded=np.asarray(shaded, np.float32), shaded_var=np.asarray(var, np.float32),
                  mitsuba=mean, mitsuba_var=mvar, mask=mask, view_depth=gb.to_image(gb.view_depth.reshape(-1)),
                  stats=stats)
+
+
+def target_missed(truth: Truth, target_se: float, max_rounds: int, worst: int = 32) -> dict:
+    """The pixels whose standard error is still above ``target_se`` after the round cap.
+
+    Returns ``{"target_se", "max_rounds", "pixels", "worst_se", "lights": {light: {"pixels",
+    "worst_se", "worst": [[x, y, se], …]}}}`` (the ``worst`` pixels of each light, worst first);
+    ``pixels`` is 0 when every pixel met the target. ``meta.json`` records it as ``target_missed``."""
+    lights = {}
+    for name, lt in truth.lights.items():
+        se = np.where(truth.mask, lt.V_se, 0.0)
+        ys, xs = np.nonzero(se > target_se)
+        if len(xs) == 0:
+            continue
+        order = np.argsort(-se[ys, xs], kind="stable")[:worst]
+        lights[name] = {"pixels": int(len(xs)), "worst_se": float(se[ys, xs].max()),
+                        "worst": [[int(xs[i]), int(ys[i]), float(se[ys[i], xs[i]])] for i in order]}
+    return {"target_se": float(target_se), "max_rounds": int(max_rounds),
+            "pixels": int(sum(v["pixels"] for v in lights.values())),
+            "worst_se": float(max((v["worst_se"] for v in lights.values()), default=0.0)), "lights": lights}
