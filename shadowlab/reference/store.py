@@ -15,6 +15,7 @@ file is reported (:class:`ReferenceError_`), never used silently.
 from __future__ import annotations
 
 import os
+import shlex
 import shutil
 import tempfile
 from pathlib import Path
@@ -38,6 +39,16 @@ def root() -> Path:
 def path_for(scene_name: str, resolution, base: Path | None = None) -> Path:
     W, H = resolution
     return (base or root()) / scene_name / f"{W}x{H}"
+
+
+def scene_arg(scene_spec) -> str:
+    """How the fix texts name a scene: its built-in name, or the path of its file when it is not a
+    built-in (``shadowlab reference NAME`` fails for a scene only known by its path)."""
+    src = str(getattr(scene_spec, "source", "") or "")
+    builtin = Path(__file__).resolve().parents[2] / "scenes" / f"{scene_spec.name}.toml"
+    if not src or (Path(src).exists() and Path(src).resolve() == builtin.resolve()):
+        return scene_spec.name
+    return shlex.quote(src)
 
 
 def _channels(truth: Truth) -> dict:
@@ -89,7 +100,7 @@ def load(scene_spec, resolution=None, base: Path | None = None, check_hash: bool
     """(Truth, meta) of a scene's stored reference; raises ReferenceError_ if missing or stale."""
     res = tuple(resolution or scene_spec.camera.resolution)
     d = path_for(scene_spec.name, res, base)
-    cmd = f"shadowlab reference {scene_spec.name} --resolution {res[0]}x{res[1]}"
+    cmd = f"shadowlab reference {scene_arg(scene_spec)} --resolution {res[0]}x{res[1]}"
     if not (d / "truth.exr").exists() or not (d / "meta.json").exists():
         have = sorted(p.name for p in d.parent.glob("*x*")) if d.parent.exists() else []
         raise ReferenceError_(f"no reference for scene {scene_spec.name!r} at {res[0]}x{res[1]} (looked in {d})"
