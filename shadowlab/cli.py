@@ -337,42 +337,56 @@ def _internal_error(e: BaseException) -> int:
     return INTERNAL_ERROR
 
 
-def _run(argv) -> int:
-    try:
-        rc = app(args=argv, standalone_mode=False)
-    except Interrupted as e:
-        typer.echo(f"interrupted by {e.signal_name}: " + (e.detail or "stopped; nothing partial was written "
-                   "(stored references and reports are as they were)"), err=True)
-        return e.exit_code
-    except ShadowlabError as e:
+def _interrupted(signum: int, detail: str = "") -> int:
+    name = Interrupted(signum).signal_name
+    typer.echo(f"interrupted by {name}: " + (detail or "stopped; nothing partial was written (stored references "
+               "and reports are as they were)"), err=True)
+    return 128 + signum
+
+
+def _exit_code(e: BaseException) -> int:
+    """Print the one line for an exception that ended a command; return its exit code."""
+    if isinstance(e, Interrupted):
+        return _interrupted(e.signum, e.detail)
+    if _signal_state["caught"] is not None and not isinstance(e, SystemExit):
+        # the signal arrived inside a C extension or an import, which wrapped it in its own error
+        return _interrupted(_signal_state["caught"])
+    if isinstance(e, ShadowlabError):
         typer.echo(f"error: {e}", err=True)
         return e.exit_code
-    except typer.Exit as e:
+    if isinstance(e, typer.Exit):
         return int(getattr(e, "exit_code", 0) or 0)
-    except typer.Abort:
+    if isinstance(e, typer.Abort):
         typer.echo("aborted", err=True)
         return 130
-    except typer.TyperException as e:  # usage errors: unknown option, missing argument
+    if isinstance(e, typer.TyperException):  # usage errors: unknown option, missing argument
         if hasattr(e, "show"):
             e.show()
         else:
             typer.echo(f"error: {e}", err=True)
         return 2
-    except KeyboardInterrupt:
+    if isinstance(e, KeyboardInterrupt):
         typer.echo("interrupted; nothing stored was changed", err=True)
         return 130
-    except MemoryError:
+    if isinstance(e, SystemExit):
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    if isinstance(e, MemoryError):
         typer.echo("error: out of memory; use a smaller --resolution, smaller shadow maps (shadow_map) or fewer "
                    "techniques at once", err=True)
         return 3
-    except OSError as e:
-        msg = _environment_oserror(e)
-        if msg is None:
-            return _internal_error(e)
-        typer.echo(f"error: {msg}", err=True)
+    if isinstance(e, OSError) and _environment_oserror(e) is not None:
+        typer.echo(f"error: {_environment_oserror(e)}", err=True)
         return 3
-    except Exception as e:  # a bug: one line, not a traceback
-        return _internal_error(e)
+    return _internal_error(e)  # a bug: one line, not a traceback
+
+
+def _run(argv) -> int:
+    try:
+        rc = app(args=argv, standalone_mode=False)
+    except BaseException as e:  # noqa: BLE001 - every way out of a command gets its exit code and one line
+        return _exit_code(e)
+    if _signal_state["caught"] is not None:  # a signal swallowed on the way (typer: KeyboardInterrupt -> 130)
+        return _interrupted(_signal_state["caught"])
     if isinstance(rc, int) and rc == 130:  # typer turned a KeyboardInterrupt into Exit(130) and returned it
         typer.echo("interrupted; nothing stored was changed", err=True)
         return 130
@@ -385,8 +399,7 @@ def main(argv=None) -> int:
     try:
         return _run(argv)
     except Interrupted as e:  # arrived between the command's end and the exit
-        typer.echo(f"interrupted by {e.signal_name}", err=True)
-        return e.exit_code
+        return _interrupted(e.signum)
     finally:
         for s, h in old.items():
             signal.signal(s, h)

@@ -255,9 +255,9 @@ def run_gate_file(path, out_dir=None, only=None, variant=None, echo=print,
         run_gates(gf, only=only, variant=variant, echo=echo, into=results)
     except (KeyboardInterrupt, Interrupted) as e:
         what = e.signal_name if isinstance(e, Interrupted) else "SIGINT"
-        note = f"interrupted by {what} after {len(results)} of {n_gates} gates; the run is incomplete"
+        note = f"after {len(results)} of {n_gates} gates; the run is incomplete"
         if out_dir is not None:
-            _write_outputs(out_dir, path, results, time.perf_counter() - t0, interrupted=note)
+            _write_outputs(out_dir, path, results, time.perf_counter() - t0, interrupted=f"interrupted by {what} {note}")
             note += f" ({out_dir / 'junit.xml'} records it as an error)"
         if isinstance(e, Interrupted):
             e.detail = note
