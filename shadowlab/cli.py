@@ -1,9 +1,20 @@
-"""The ``shadowlab`` command line (typer). Exit codes: 0 ok, 1 gate failed, 2 bad input or
-usage, 3 environment (docs/ARCHITECTURE.md, Conventions)."""
+"""The ``shadowlab`` command line (typer).
+
+Exit codes (the README's exit-code paragraph; docs/ARCHITECTURE.md, Conventions): 0 ok, 1 a gate
+failed, 2 bad input or usage, 3 environment (no usable libLLVM, a file that cannot be written,
+out of memory), 4 internal error (a bug: one "please report" line; the traceback with
+``SHADOWLAB_DEBUG=1``), 130 SIGINT (Ctrl-C), 143 SIGTERM. A signal stops the command with one
+line on stderr; the atomic writers remove what they had begun, so nothing partial is left.
+"""
 
 from __future__ import annotations
 
+import errno
+import math
+import os
+import signal
 import sys
+import traceback
 from pathlib import Path
 from typing import List, Optional
 
@@ -11,7 +22,7 @@ import typer
 
 from . import backend
 from .bench import run as run_bench
-from .errors import GateFailure, ShadowlabError
+from .errors import INTERNAL_ERROR, GateFailure, Interrupted, ShadowlabError
 from .exchange.export import export_scene
 from .exchange.ingest import ingest as run_ingest
 from .fit import Budget
@@ -30,11 +41,42 @@ from .techniques import base
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Real-time shadow techniques against Mitsuba 3 ground truth.")
 
-VariantOpt = typer.Option(None, "--variant", help="Mitsuba variant: llvm_ad_rgb (default) or cuda_ad_rgb.")
+DEBUG_ENV = "SHADOWLAB_DEBUG"
+
+
+def _check_variant(value):
+    if value is not None and value not in backend.SUPPORTED_VARIANTS:
+        raise typer.BadParameter(f"unknown variant {value!r}; choose one of {', '.join(backend.SUPPORTED_VARIANTS)}")
+    return value
+
+
+def _number(lo=None, hi=None, lo_open=False, what="a number"):
+    """A typer callback: the value must be finite and in [lo, hi] (``lo_open``: (lo, hi])."""
+    def cb(value):
+        if value is None:
+            return value
+        if isinstance(value, float) and not math.isfinite(value):
+            raise typer.BadParameter(f"{value} is not a finite number; expected {what}")
+        if lo is not None and (value <= lo if lo_open else value < lo) or hi is not None and value > hi:
+            left = "(" if lo_open else "["
+            raise typer.BadParameter(f"{value} is out of range; expected {what} in {left}{lo}, {hi}]")
+        return value
+    return cb
+
+
+VariantOpt = typer.Option(None, "--variant", callback=_check_variant,
+                          help="Mitsuba variant: llvm_ad_rgb (default) or cuda_ad_rgb.")
+ForceOpt = typer.Option(False, "--force", help="Write into an existing --out directory that shadowlab did not "
+                        "create (only the report's own files are replaced).")
 
 
 def _init(variant):
     backend.init(variant)
+
+
+def _progress() -> bool:
+    """Progress bars only on a terminal: in CI logs and pipes they are noise."""
+    return sys.stderr.isatty()
 
 
 def _split(csv: str) -> list[str]:
@@ -74,9 +116,12 @@ def techniques(markdown: bool = typer.Option(False, "--markdown", help="Print Ma
 def reference(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
               resolution: Optional[str] = typer.Option(None, "--resolution", "-r", help="WxH (default: the scene's)."),
               force: bool = typer.Option(False, "--force", help="Replace an existing reference."),
-              seed: int = typer.Option(0, "--seed"),
-              target_se: float = typer.Option(0.005, "--target-se", help="Per-pixel standard error to reach."),
-              spp: int = typer.Option(256, "--spp", help="Samples per pixel of the mi.render image."),
+              seed: int = typer.Option(0, "--seed", callback=_number(0, 2**32 - 1, what="a seed"),
+                                       help="Random seed, 0..4294967295."),
+              target_se: float = typer.Option(0.005, "--target-se", callback=_number(
+                  0.0, 0.5, lo_open=True, what="a standard error"), help="Per-pixel standard error to reach, (0, 0.5]."),
+              spp: int = typer.Option(256, "--spp", callback=_number(0, 1 << 20, what="a sample count"),
+                                      help="Samples per pixel of the mi.render image (0: none)."),
               ss: int = typer.Option(1, "--ss", min=1, max=8, help="s×s shading points per pixel (supersampling)."),
               max_rounds: int = typer.Option(64, "--max-rounds", min=1, max=4096, help="Round cap of a penumbra "
                                              "pixel (8×8 shadow rays per round per light)."),
@@ -84,7 +129,7 @@ def reference(scene: str = typer.Argument(..., help="Built-in scene name or path
     """Render and store the Mitsuba ground truth of a scene."""
     _init(variant)
     path, meta = ref(scene, parse_resolution(resolution), force=force, seed=seed, target_se=target_se, spp=spp, ss=ss,
-                     max_rounds=max_rounds)
+                     max_rounds=max_rounds, progress=_progress())
     typer.echo(f"reference written to {path}: worst standard error {meta['max_std_error']:.4f}, "
                f"{meta['samples']['shadow_rays']:,} shadow rays, {meta['wall_time_s']:.1f} s")
     tm = meta.get("target_missed") or {}
@@ -107,10 +152,11 @@ def references():
                    + "".join(f"\n{'':18s} {p}" for p in r["status"]))
 
 
-def _compare(scene, techs, sets, out, resolution, variant, preset=None):
+def _compare(scene, techs, sets, out, resolution, variant, preset=None, force=False):
     _init(variant)
     run = cmp(scene, techs, sets, Path(out) if out else None, parse_resolution(resolution),
-              params=preset.values if preset else None, preset=preset.info() if preset else None)
+              params=preset.values if preset else None, preset=preset.info() if preset else None, force=force,
+              progress=_progress())
     typer.echo(summary_table(run))
     if out:
         typer.echo(f"report: {Path(out) / 'index.html'}")
@@ -126,18 +172,20 @@ def compare(scene: str = typer.Argument(..., help="Built-in scene name or path t
                                                  "`shadowlab fit`): {technique: {param: value}}; --set overrides it."),
             out: Optional[str] = typer.Option(None, "--out", "-o", help="Report directory."),
             resolution: Optional[str] = typer.Option(None, "--resolution", "-r"),
+            force: bool = ForceOpt,
             variant: Optional[str] = VariantOpt):
     """Compare techniques with the ground truth; write index.html, summary.md, metrics.json."""
     out = out or f"reports/{Path(scene).stem}"
     pre = load_preset(preset) if preset else None
     techs = _split(techniques_) if techniques_ is not None else list(pre.values) if pre else ["hard", "pcf"]
-    _compare(scene, techs, set_, out, resolution, variant, pre)
+    _compare(scene, techs, set_, out, resolution, variant, pre, force)
 
 
 @app.command()
-def demo(out: str = typer.Option("reports/demo", "--out", "-o"), variant: Optional[str] = VariantOpt):
+def demo(out: str = typer.Option("reports/demo", "--out", "-o"), force: bool = ForceOpt,
+         variant: Optional[str] = VariantOpt):
     """Compare every registered technique on the built-in `contact` scene and print the table."""
-    _compare("contact", base.names(), [], out, None, variant)
+    _compare("contact", base.names(), [], out, None, variant, force=force)
 
 
 @app.command()
@@ -159,9 +207,12 @@ def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a 
         grid_points: int = typer.Option(21, "--grid-points", help="Grid points per parameter (--method grid)."),
         rounds: int = typer.Option(0, "--rounds", help="Coordinate rounds over the parameters (0: automatic)."),
         out: Optional[str] = typer.Option(None, "--out", "-o", help="Report directory (default reports/fit/SCENE-TECHNIQUE)."),
-        save_preset: Optional[str] = typer.Option(None, "--save-preset", help="Also write the fitted preset to this file."),
+        save_preset: Optional[str] = typer.Option(None, "--save-preset", help="Also write the fitted preset to this "
+                                                  "file (an existing file only if shadowlab fit wrote it, or --force)."),
         preset_name: Optional[str] = typer.Option(None, "--preset-name", help="Name of the saved preset."),
         resolution: Optional[str] = typer.Option(None, "--resolution", "-r"),
+        force: bool = typer.Option(False, "--force", help="Replace a --save-preset file and write into an --out "
+                                   "directory that shadowlab did not create."),
         variant: Optional[str] = VariantOpt):
     """Fit technique parameters to the ground truth; write DIR/fit.json, index.html, summary.md, preset.toml."""
     _init(variant)
@@ -169,7 +220,7 @@ def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a 
     run = run_fit(scene, technique, params=params, method=method, loss=loss, all_techniques=all_, sets=set_,
                   preset=preset, ranges=range_, budget=Budget(steps, lr, evals, grid_points, rounds), out=out,
                   save_preset=save_preset, preset_name=preset_name, resolution=parse_resolution(resolution),
-                  echo=lambda m: typer.echo(m, err=True))
+                  echo=lambda m: typer.echo(m, err=True), force=force)
     typer.echo(fit_table(run))
     typer.echo(f"report: {run['out']}")
     if save_preset:
@@ -208,11 +259,13 @@ def ingest(scene: str = typer.Argument(..., help="Built-in scene name or path to
            out: Optional[str] = typer.Option(None, "--out", "-o", help="Report directory (default "
                                              "reports/ingest/SCENE)."),
            gate: Optional[str] = typer.Option(None, "--gate", help="Gate file to run on the image (exit 1 on failure)."),
+           force: bool = ForceOpt,
            variant: Optional[str] = VariantOpt):
     """Compare an image rendered elsewhere with the stored ground truth; write a report."""
+    _init(variant)
     out = out or f"reports/ingest/{Path(scene).stem}"
     run = run_ingest(scene, image, channels=channel, shaded=shaded, layer=layer, against=against,
-                     resolution=parse_resolution(resolution), out=Path(out), gate=gate)
+                     resolution=parse_resolution(resolution), out=Path(out), gate=gate, force=force)
     typer.echo(summary_table(run))
     for light, d in next(iter(run["techniques"].values()))["per_light"].items():
         typer.echo(f"{light}: " + ", ".join(f"{k} {v:.4g}" for k, v in d.items()))
@@ -231,10 +284,11 @@ def ingest(scene: str = typer.Argument(..., help="Built-in scene name or path to
 def gate(gatefile: str = typer.Argument(..., help="Gate file (TOML), e.g. references/gates.toml."),
          out: str = typer.Option("reports/gate", "--out", "-o", help="Directory for junit.xml and index.html."),
          only: Optional[str] = typer.Option(None, "--only", help="Comma-separated gate names to run."),
+         force: bool = ForceOpt,
          variant: Optional[str] = VariantOpt):
     """Gate candidates against stored references; exit 0 pass, 1 a gate failed, 2 bad input."""
     code, results = run_gate_file(gatefile, out_dir=Path(out), only=_split(only) if only else None, variant=variant,
-                                  echo=typer.echo)
+                                  echo=typer.echo, force=force)
     if code:
         raise GateFailure(f"{sum(not r.passed for r in results)} gate(s) failed: "
                           f"{', '.join(r.name for r in results if not r.passed)}; see {Path(out) / 'index.html'}")
@@ -251,28 +305,115 @@ def bench(out: str = typer.Option("reports/bench", "--out", "-o"),
     typer.echo(Path(path_md).read_text())
 
 
-def main(argv=None) -> int:
-    """Entry point: run the typer app and map errors to exit codes."""
-    try:
-        app(args=argv, standalone_mode=False)
-    except ShadowlabError as e:
+_signal_state = {"caught": None}
+
+
+def _on_signal(signum, frame):
+    """SIGINT / SIGTERM: stop the command by raising :class:`Interrupted` (once; a second signal
+    while the writers clean up is ignored, so the cleanup finishes)."""
+    if _signal_state["caught"] is not None:
+        return
+    _signal_state["caught"] = signum
+    raise Interrupted(signum)
+
+
+def _install_signal_handlers() -> dict:
+    """Our handlers for SIGINT and SIGTERM, also where SIGINT was inherited as ignored (a
+    background job of a script); returns the previous handlers."""
+    _signal_state["caught"] = None
+    old = {}
+    for s in (signal.SIGINT, signal.SIGTERM):
+        try:
+            old[s] = signal.signal(s, _on_signal)
+        except ValueError:  # not the main thread (an embedding application): leave its handlers alone
+            pass
+    return old
+
+
+def _environment_oserror(e: OSError) -> str | None:
+    """The message of an OSError that is the machine's (permissions, full disk, read-only file
+    system), or None."""
+    if e.errno in (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT):
+        what = f"{e.filename}" if e.filename else "a file"
+        return (f"cannot write {what}: {e.strerror}; make the directory writable (or free disk space) and run "
+                "the command again")
+    return None
+
+
+def _internal_error(e: BaseException) -> int:
+    typer.echo(f"internal error: {type(e).__name__}: {e}. This is a shadowlab bug; please report it with the "
+               f"command line and its input files (set {DEBUG_ENV}=1 to print the traceback).", err=True)
+    if os.environ.get(DEBUG_ENV, "") not in ("", "0"):
+        traceback.print_exception(e, file=sys.stderr)
+    return INTERNAL_ERROR
+
+
+def _interrupted(signum: int, detail: str = "") -> int:
+    name = Interrupted(signum).signal_name
+    typer.echo(f"interrupted by {name}: " + (detail or "stopped; nothing partial was written (stored references "
+               "and reports are as they were)"), err=True)
+    return 128 + signum
+
+
+def _exit_code(e: BaseException) -> int:
+    """Print the one line for an exception that ended a command; return its exit code."""
+    if isinstance(e, Interrupted):
+        return _interrupted(e.signum, e.detail)
+    if _signal_state["caught"] is not None and not isinstance(e, SystemExit):
+        # the signal arrived inside a C extension or an import, which wrapped it in its own error
+        return _interrupted(_signal_state["caught"])
+    if isinstance(e, ShadowlabError):
         typer.echo(f"error: {e}", err=True)
         return e.exit_code
-    except typer.Exit as e:
+    if isinstance(e, typer.Exit):
         return int(getattr(e, "exit_code", 0) or 0)
-    except typer.Abort:
+    if isinstance(e, typer.Abort):
         typer.echo("aborted", err=True)
         return 130
-    except typer.TyperException as e:  # usage errors: unknown option, missing argument
+    if isinstance(e, typer.TyperException):  # usage errors: unknown option, missing argument
         if hasattr(e, "show"):
             e.show()
         else:
             typer.echo(f"error: {e}", err=True)
         return 2
-    except KeyboardInterrupt:
+    if isinstance(e, KeyboardInterrupt):
+        typer.echo("interrupted; nothing stored was changed", err=True)
+        return 130
+    if isinstance(e, SystemExit):
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    if isinstance(e, MemoryError):
+        typer.echo("error: out of memory; use a smaller --resolution, smaller shadow maps (shadow_map) or fewer "
+                   "techniques at once", err=True)
+        return 3
+    if isinstance(e, OSError) and _environment_oserror(e) is not None:
+        typer.echo(f"error: {_environment_oserror(e)}", err=True)
+        return 3
+    return _internal_error(e)  # a bug: one line, not a traceback
+
+
+def _run(argv) -> int:
+    try:
+        rc = app(args=argv, standalone_mode=False)
+    except BaseException as e:  # noqa: BLE001 - every way out of a command gets its exit code and one line
+        return _exit_code(e)
+    if _signal_state["caught"] is not None:  # a signal swallowed on the way (typer: KeyboardInterrupt -> 130)
+        return _interrupted(_signal_state["caught"])
+    if isinstance(rc, int) and rc == 130:  # typer turned a KeyboardInterrupt into Exit(130) and returned it
         typer.echo("interrupted; nothing stored was changed", err=True)
         return 130
     return 0
+
+
+def main(argv=None) -> int:
+    """Entry point: run the typer app and map errors and signals to exit codes."""
+    old = _install_signal_handlers()
+    try:
+        return _run(argv)
+    except Interrupted as e:  # arrived between the command's end and the exit
+        return _interrupted(e.signum)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 if __name__ == "__main__":

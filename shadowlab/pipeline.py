@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 import time
@@ -22,6 +23,7 @@ from .reference.truth import render_truth, target_missed
 from .render.frame import make_frame
 from .render.shading import compose
 from .report import build
+from .report.outdir import claim_dir
 from .scene import load
 from .scene.spec import builtin_dir
 from .techniques import base as tbase
@@ -48,6 +50,22 @@ def parse_resolution(text) -> tuple | None:
     return tuple(parts)
 
 
+def check_reference_args(*, seed=0, target_se=0.005, spp=256, ss=1, max_rounds=64) -> None:
+    """Refuse out-of-range options of ``shadowlab reference`` (a negative or NaN ``--target-se``
+    was accepted once): InputError naming the option and its range."""
+    def integer(opt, v, lo, hi):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= int(v) <= hi:
+            raise InputError(f"{opt} {v!r}: expected an integer in [{lo}, {hi}]")
+    if isinstance(target_se, bool) or not isinstance(target_se, (int, float)) or not math.isfinite(target_se) \
+            or not 0 < target_se <= 0.5:
+        raise InputError(f"--target-se {target_se!r}: expected a standard error in (0, 0.5] (visibility lies in "
+                         "[0, 1]), e.g. 0.005")
+    integer("--seed", seed, 0, 2**32 - 1)
+    integer("--spp", spp, 0, 1 << 20)
+    integer("--ss", ss, 1, 8)
+    integer("--max-rounds", max_rounds, 1, 1 << 16)
+
+
 def load_scene(scene: str, resolution=None):
     backend.init()
     return load(scene, resolution=resolution)
@@ -59,7 +77,9 @@ def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0
     """Render and store the ground truth of ``scene``; returns (path, meta).
 
     ``ss``: s×s sub-pixel shading points per pixel (G-buffer supersampling); techniques compared
-    with this reference are evaluated at the same points."""
+    with this reference are evaluated at the same points. Numeric arguments are range-checked
+    (InputError, exit 2) before anything is loaded."""
+    check_reference_args(seed=seed, target_se=target_se, spp=spp, ss=ss, max_rounds=max_rounds)
     sc = load_scene(scene, resolution)
     if base is None and os.environ.get(store.ROOT_ENV) and not Path(os.environ[store.ROOT_ENV]).is_dir():
         print(f"note: {store.ROOT_ENV}={os.environ[store.ROOT_ENV]} does not exist; creating a new reference "
@@ -147,14 +167,21 @@ def technique_metrics(frame, truth, result) -> tuple[dict, dict, dict]:
 
 def compare(scene: str, techniques: list[str], sets: list[str] | None = None, out: Path | None = None,
             resolution=None, *, render_missing: bool = False, progress: bool = True, base: Path | None = None,
-            params: dict | None = None, preset: dict | None = None) -> dict:
+            params: dict | None = None, preset: dict | None = None, force: bool = False) -> dict:
     """Compare ``techniques`` with the stored truth of ``scene``; write a report to ``out``.
+
+    ``out`` is checked before anything is rendered: never inside the reference store, not an
+    existing file, and an existing directory only if shadowlab made it or ``force``
+    (:func:`shadowlab.report.outdir.claim_dir`).
 
     A missing reference is an error (exit 2) naming the ``shadowlab reference`` command that makes it,
     as is a stale or damaged one; ``render_missing=True`` renders and stores a missing one first.
     ``params``: {technique: {param: value}} applied under ``sets`` (e.g. a preset's values);
     ``preset``: {name, path, values} of that preset, recorded in the run (metrics.json, report).
     """
+    store_root = base or store.root()
+    if out is not None:
+        claim_dir(Path(out), "compare", force=force, protected=[store_root])
     for n in techniques:
         tbase.get(n)  # unknown names fail before any rendering
     overrides = tbase.parse_sets(sets or [], techniques)
@@ -190,5 +217,5 @@ def compare(scene: str, techniques: list[str], sets: list[str] | None = None, ou
                                 "stats": res.stats}
         run["images"]["techniques"][n] = imgs
     if out is not None:
-        build(Path(out), run)
+        build(Path(out), run, force=force, protected=[store_root])
     return run

@@ -47,7 +47,9 @@ from .. import __version__, backend
 from ..errors import InputError, SceneError
 from ..io.jsonio import write_json_atomic
 from ..io.png import encode_png
+from ..reference import store
 from ..render.camera import Camera
+from ..report.outdir import claim_dir
 from ..scene import lights as lights_mod
 from ..scene.build import build, sensor_dict, shape_dicts
 from ..scene.spec import SceneSpec, load_spec, resolve
@@ -306,14 +308,15 @@ def _install(tmp: Path, out: Path) -> None:
 
 
 def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = DEFAULT_SPP,
-                 force: bool = False, verify: bool = True) -> dict:
+                 force: bool = False, verify: bool = True, protected=None) -> dict:
     """Export ``scene`` (built-in name, TOML path or SceneSpec) to the directory ``out``; returns
     the manifest (scene.json). ``resolution`` = (W, H) overrides the scene's camera resolution.
 
     An existing non-empty ``out`` is refused unless ``force`` (then only the exported files and the
     ``meshes/``, ``textures/`` directories are replaced). Everything is written to a temporary sibling
     directory first, checked by loading both XML files with ``mi.load_file`` (``verify``), and only
-    then moved into place: a failed export leaves ``out`` as it was."""
+    then moved into place: a failed export leaves ``out`` as it was. ``out`` never lies inside the
+    reference store (``protected``, default the store's root): exit 2, even with ``force``."""
     if not isinstance(segments, int) or not 3 <= segments <= 4096:
         raise InputError(f"--segments {segments!r}: expected an integer in 3..4096 (tessellation of curved shapes)")
     if not isinstance(spp, int) or spp < 1:
@@ -326,8 +329,8 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
         raise InputError(f"scene {spec.name!r} has [[sdf]] objects, which have no triangle mesh or Mitsuba shape to "
                          "export; export a scene made of [[shapes]] only")
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"export output {out} exists and is not a directory; choose another --out")
+    # inside the store, an existing file, or below a file: refused (the non-empty rule follows)
+    claim_dir(out, "export", force=True, protected=[store.root()] if protected is None else protected)
     if out.exists() and any(out.iterdir()) and not force:
         raise InputError(f"export output {out} exists and is not empty; pass --force to replace the exported "
                          f"files in it ({', '.join(EXPORT_FILES)}, meshes/, textures/) or choose another --out")

@@ -35,6 +35,7 @@ from ..io.exr import check_finite, read_exr
 from ..metrics import compare_shaded, compare_visibility, penumbra_mask
 from ..reference import store
 from ..report import build
+from ..report.outdir import claim_dir
 from ..scene.spec import load_spec, resolve
 
 __all__ = ["ingest", "CHANNEL_AGAINST", "SHADED_AGAINST"]
@@ -112,11 +113,13 @@ def _extra_stats(x, t, se, valid) -> dict:
 
 def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None = None,
            against: str | None = None, resolution=None, out=None, base=None, gate=None,
-           label: str | None = None) -> dict:
+           label: str | None = None, force: bool = False) -> dict:
     """Compare ``image`` (an EXR) with the stored truth of ``scene``; returns the run dict (what
     ``metrics.json`` holds, plus ``images``). ``out``: write index.html, summary.md and
     metrics.json there (:func:`shadowlab.report.build`). ``resolution``: the reference's (W, H);
-    default the image's size. ``gate``: a gate file, run on the image (exit 1 when it fails)."""
+    default the image's size. ``gate``: a gate file, run on the image (exit 1 when it fails).
+    ``out`` is never inside the store, and an existing directory shadowlab did not make is
+    written into only with ``force`` (:func:`shadowlab.report.outdir.claim_dir`)."""
 
     spec = load_spec(resolve(scene))
     image = Path(image)
@@ -141,10 +144,7 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
     if layer is not None and not shaded:
         raise InputError("--layer picks the RGB layer of --shaded; with --channel name the channel itself")
     if out is not None:
-        o, r = Path(out).resolve(), (base or store.root()).resolve()
-        if o == r or r in o.parents:
-            raise InputError(f"--out {out} is inside the reference store {r}; write reports elsewhere "
-                             "(e.g. reports/ingest)")
+        claim_dir(Path(out), "ingest", force=force, protected=[base or store.root()])
 
     g = _load_gate(gate) if gate is not None else None
     ch = read_exr(image)
@@ -170,7 +170,7 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
     if res != (W, H):
         raise InputError(f"{image} is {W}x{H} but the reference asked for is {res[0]}x{res[1]}; render the image at "
                          f"{res[0]}x{res[1]}, or compare with a reference of the image's size: "
-                         f"`shadowlab reference {spec.name} --resolution {W}x{H}`")
+                         f"`shadowlab reference {store.scene_arg(spec)} --resolution {W}x{H}`")
     spec = spec.with_resolution(*res)  # the scene hash includes the camera resolution
     try:
         truth, meta = store.load(spec, res, base)
@@ -203,7 +203,7 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
         if against == "mitsuba":
             if truth.mitsuba is None:
                 raise InputError("the reference has no mitsuba.R|G|B channels (rendered with --spp 0); use "
-                                 f"--against shaded or re-render it: `shadowlab reference {spec.name} --resolution "
+                                 f"--against shaded or re-render it: `shadowlab reference {store.scene_arg(spec)} --resolution "
                                  f"{W}x{H} --force`")
             t_img, t_var = np.asarray(truth.mitsuba, np.float64), np.asarray(truth.mitsuba_var, np.float64)
         else:
@@ -267,7 +267,7 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
     if gate is not None:
         run["gate"] = _gate_results(g, truth, ch, image, shaded, img if shaded else None, picked, against, lit)
     if out is not None:
-        build(Path(out), run)
+        build(Path(out), run, force=force, protected=[base or store.root()], kind="ingest")
     return run
 
 

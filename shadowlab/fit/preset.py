@@ -28,9 +28,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import InputError
+from ..report.outdir import check_out_file
 from ..techniques import base
 
 RESERVED = ("name", "description", "meta")
+#: the description of every preset ``shadowlab fit`` writes: how an existing file is known to be ours
+FIT_DESCRIPTION = "fitted by shadowlab fit"
 
 
 @dataclass
@@ -140,20 +143,36 @@ def to_toml(name: str, values: dict, description: str = "", meta: dict | None = 
     return "\n".join(lines) + "\n"
 
 
-def check_writable(path) -> Path:
-    """Refuse a preset destination that cannot be a file (before any fitting is done)."""
+def written_by_fit(path) -> bool:
+    """Whether the file at ``path`` is a preset ``shadowlab fit`` wrote (a valid preset whose
+    description is :data:`FIT_DESCRIPTION`); such a file may be replaced without ``--force``."""
+    p = Path(path)
+    try:
+        data = _parse_text(p, p.read_text(encoding="utf-8"))
+        return isinstance(data, dict) and data.get("description") == FIT_DESCRIPTION and bool(from_dict(data, str(p)))
+    except (OSError, UnicodeDecodeError, InputError):
+        return False
+
+
+def check_writable(path, force: bool = False, protected=()) -> Path:
+    """Refuse a preset destination before any fitting is done: a directory, a name not ending in
+    .toml / .json, a path inside the reference store (``protected``), or an existing file that
+    ``shadowlab fit`` did not write (unless ``force``): it replaced a reference's meta.json and
+    the store's gates.toml once."""
     p = Path(path)
     if p.is_dir():
         raise InputError(f"--save-preset {p} is a directory; give a file name such as {p / 'preset.toml'}")
     if p.suffix.lower() not in (".toml", ".json"):
         raise InputError(f"--save-preset {p}: the file name must end in .toml or .json")
-    return p
+    return check_out_file(p, "--save-preset", force=force, protected=protected, ours=written_by_fit)
 
 
-def save(path, name: str, values: dict, description: str = "", meta: dict | None = None) -> Path:
+def save(path, name: str, values: dict, description: str = "", meta: dict | None = None, *,
+         force: bool = False, protected=()) -> Path:
     """Write a preset atomically (TOML, or JSON for a .json name); it is read back and validated
-    first, so a file that is written can be loaded."""
-    p = check_writable(path)
+    first, so a file that is written can be loaded. An existing file is replaced only if
+    ``shadowlab fit`` wrote it or with ``force`` (:func:`check_writable`)."""
+    p = check_writable(path, force=force, protected=protected)
     if p.suffix.lower() == ".json":
         text = json.dumps({"name": name, **({"description": description} if description else {}),
                            **({"meta": meta} if meta else {}), **values}, indent=2) + "\n"

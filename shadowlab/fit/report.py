@@ -26,6 +26,7 @@ from ..errors import InputError
 from ..io.png import encode_png
 from ..report import images as _im
 from ..report.html import to_jsonable
+from ..report.outdir import MARKER, claim_dir, marker_text
 from . import preset as P
 
 OUTPUT_FILES = ("fit.json", "summary.md", "preset.toml", "index.html")
@@ -45,10 +46,12 @@ img.cbar { width: 192px; height: 10px; image-rendering: pixelated; display: bloc
 """
 
 
-def check_out(out: Path):
-    """Refuse an output path that cannot hold the report (before any fitting is done)."""
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} exists and is not a directory; choose another --out")
+def check_out(out: Path, force: bool = False, protected=()):
+    """Refuse an output path that cannot hold the report (before any fitting is done): inside the
+    reference store (``protected``), an existing file, or an existing directory shadowlab did not
+    make (unless ``force``; :func:`shadowlab.report.outdir.claim_dir`)."""
+    out = Path(out)
+    claim_dir(out, "fit", force=force, protected=protected, files=OUTPUT_FILES + ("img/",))
     for f in OUTPUT_FILES:
         if (out / f).is_dir():
             raise InputError(f"--out: {out / f} is a directory; remove it or choose another --out")
@@ -308,10 +311,10 @@ def to_json(run: dict) -> dict:
                         "techniques": techs}, "fit")
 
 
-def write(out: Path, run: dict) -> Path:
+def write(out: Path, run: dict, force: bool = False, protected=()) -> Path:
     """Write the report into ``out`` atomically; returns the path of index.html."""
     out = Path(out)
-    check_out(out)
+    check_out(out, force, protected)
     data = to_json(run)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.fit-"))
@@ -321,8 +324,9 @@ def write(out: Path, run: dict) -> Path:
         (tmp / "fit.json").write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
         (tmp / "summary.md").write_text(summary_table(run), encoding="utf-8")
         (tmp / "preset.toml").write_text(P.to_toml(run["preset"]["name"], run["preset"]["values"],
-                                                   "fitted by shadowlab fit", P.preset_meta(run)), encoding="utf-8")
+                                                   P.FIT_DESCRIPTION, P.preset_meta(run)), encoding="utf-8")
         (tmp / "index.html").write_text(text, encoding="utf-8")
+        (tmp / MARKER).write_text(marker_text("fit", OUTPUT_FILES + ("img",)), encoding="utf-8")
         os.chmod(tmp, 0o755)
         _install(tmp, out)
     except BaseException:
@@ -342,6 +346,6 @@ def _install(tmp: Path, out: Path):
     if os.path.lexists(out / "img"):
         os.rename(out / "img", old)
     os.rename(tmp / "img", out / "img")
-    for f in OUTPUT_FILES:                       # index.html last: it links the rest
+    for f in (MARKER,) + OUTPUT_FILES:           # index.html last: it links the rest
         os.replace(tmp / f, out / f)
     shutil.rmtree(tmp, ignore_errors=True)

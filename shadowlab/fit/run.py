@@ -337,7 +337,7 @@ def prepare(scene: str, resolution=None, base: Path | None = None):
 def fit(scene: str, technique: str | None = None, *, params=None, method: str = "auto", loss: str | None = None,
         all_techniques: bool = False, sets=None, preset=None, ranges=None, budget: Budget | None = None,
         out=None, save_preset=None, preset_name: str | None = None, resolution=None, base: Path | None = None,
-        echo=None) -> dict:
+        echo=None, force: bool = False) -> dict:
     """The ``shadowlab fit`` job. Returns the run dict (``mode`` "one" or "all") and writes the
     report to ``out`` (if given) and the preset to ``save_preset`` (if given)."""
     budget = (budget or Budget()).check()
@@ -358,10 +358,11 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
     sets_by = tbase.parse_sets(sets or [], techs)
     ranges_by = parse_ranges(ranges or [], techs)
     names = parse_params(params)
+    protected = [base or store.root()]                  # nothing but references goes into the store
     if out is not None:
-        R.check_out(Path(out))
+        R.check_out(Path(out), force, protected)
     if save_preset is not None:
-        P.check_writable(save_preset)
+        P.check_writable(save_preset, force, protected)
     sc, truth, meta, frame = prepare(scene, resolution, base)
     plans, skipped = {}, {}
     for t in techs:
@@ -398,9 +399,10 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
     pname = preset_name or (f"{sc.name}-{technique}-fit" if not all_techniques else f"{sc.name}-fit")
     run["preset"] = {"name": pname, "values": {t: r["preset_values"] for t, r in results.items()}}
     if out is not None:
-        run["out"] = str(R.write(Path(out), run))
+        run["out"] = str(R.write(Path(out), run, force, protected))
     if save_preset is not None:
-        P.save(save_preset, pname, run["preset"]["values"], "fitted by shadowlab fit", P.preset_meta(run))
+        P.save(save_preset, pname, run["preset"]["values"], P.FIT_DESCRIPTION, P.preset_meta(run), force=force,
+               protected=protected)
         run["preset"]["path"] = str(save_preset)
     return run
 

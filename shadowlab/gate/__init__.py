@@ -32,7 +32,9 @@ same numbers as the ``compare`` report. Shaded target: ``rmse mae psnr ssim flip
 their ``_penumbra`` versions; a technique candidate adds ``leak_rate overdark_rate vis_rmse
 vis_rmse_penumbra`` (pooled over lights as in the report). Visibility target: ``rmse mae
 rmse_penumbra mae_penumbra leak_rate overdark_rate leak_mean overdark_mean flip``. psnr*/ssim*
-must be ≥ the limit, all others ≤. A metric over an empty region (no penumbra) is "n/a" and passes.
+must be ≥ the limit, all others ≤. A metric over an empty region (no penumbra) is "n/a" and passes,
+but a gate never passes on nothing: with fewer than ``MIN_GATE_PIXELS`` (16) compared pixels (seen
+by the camera and reached by a light) it gets a failing ``pixels`` check.
 
 Targets: ``shaded`` (Σ U·V, the stored ``shaded.*`` with ``shaded.var.*``), ``visibility`` (one
 light's ``V.<light>`` with ``V.<light>.se``), ``mitsuba`` (Mitsuba's ``direct`` image with its

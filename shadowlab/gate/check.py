@@ -17,12 +17,16 @@ from .stats import bias_test, z_test
 from .thresholds import (SHADED_METRICS, TECHNIQUE_SHADED_METRICS, VISIBILITY_METRICS, Thresholds, higher_is_better,
                          parse_thresholds)
 
-__all__ = ["Check", "GateResult", "Target", "check", "truth_target", "TARGETS", "BOUND_SIGMAS"]
+__all__ = ["Check", "GateResult", "Target", "check", "truth_target", "TARGETS", "BOUND_SIGMAS", "MIN_GATE_PIXELS"]
 
 TARGETS = ("shaded", "visibility", "mitsuba")
 #: a unanimous truth pixel (all n shadow rays agree) has sample variance 0 and the rule-of-three
 #: bound B = 3/n (95 %); the statistical test counts it as a standard deviation of B / BOUND_SIGMAS
 BOUND_SIGMAS = 2.0
+#: a gate never passes on nothing: when fewer pixels than this are compared (the camera sees no
+#: surface, the light reaches none: a light inside a closed box), the gate gets a failing
+#: ``pixels`` check, whatever its other checks say
+MIN_GATE_PIXELS = 16
 
 
 @dataclass
@@ -254,6 +258,16 @@ def check(candidate, reference, thresholds, *, target: str = "shaded", light: st
     res.info = {"pixels": int(tgt.valid.sum()), "penumbra_pixels": int(tgt.penumbra.sum()) if tgt.penumbra is not None
                 else None, "resolution": [int(hw[1]), int(hw[0])]}
 
+    covered = tgt.valid.copy()
+    if tgt.lights:  # a stored truth: only pixels some light reaches measure a shadow
+        covered &= np.logical_or.reduce([np.asarray(lit, bool) for _, lit in tgt.lights.values()])
+    n_pix = res.info["compared_pixels"] = int(covered.sum())
+    if n_pix < MIN_GATE_PIXELS:
+        res.checks.append(Check(
+            "pixels", "coverage", float(n_pix), float(MIN_GATE_PIXELS), ">=", False,
+            f"{n_pix} pixel(s) to compare (seen by the camera and reached by a light), need >= {MIN_GATE_PIXELS}: "
+            "nothing to measure, so the gate cannot pass; point the camera at the lit scene and check that no "
+            "light is enclosed"))
     st = th.statistical
     if st is not None:
         zt = z_test(cand, tgt.image, tgt.var, cvar, tgt.valid, alpha=st.alpha, atol=st.atol, rtol=st.rtol, ptol=st.ptol,

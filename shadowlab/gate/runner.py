@@ -6,6 +6,12 @@ loaded (missing or stale: :class:`~shadowlab.errors.ReferenceError_`, exit 2), t
 rendered or read (NaN/Inf, wrong size, missing channels: :class:`~shadowlab.errors.InputError`,
 exit 2) and checked. Only when every gate has been evaluated are ``junit.xml`` and ``index.html``
 written to the output directory. References are only read, never written.
+
+The output directory is checked first (:func:`shadowlab.report.outdir.claim_dir`): never inside
+the reference store, not a file, and an existing directory only if shadowlab made it (it holds
+``.shadowlab-report``) or with ``force``. An interrupted run (SIGINT, SIGTERM) does not look green:
+``junit.xml`` is written with an ``interrupted`` error and the gates finished so far, and the
+interruption propagates (exit 130 / 143).
 """
 
 from __future__ import annotations
@@ -17,12 +23,13 @@ import drjit as dr
 import numpy as np
 
 from .. import backend
-from ..errors import InputError
+from ..errors import InputError, Interrupted
 from ..io.exr import read_exr
 from ..reference import store
 from ..reference.truth import LightTruth, Truth, render_truth
 from ..render.frame import make_frame
 from ..render.shading import compose
+from ..report.outdir import MARKER, claim_dir, marker_text
 from ..scene import load
 from ..scene.spec import load_spec, resolve
 from ..techniques import base as tbase
@@ -204,11 +211,12 @@ def run_gate(ctx: _Context, g: GateSpec) -> GateResult:
     return res
 
 
-def run_gates(gf: GateFile, only=None, variant=None, echo=None) -> list[GateResult]:
+def run_gates(gf: GateFile, only=None, variant=None, echo=None, into: list | None = None) -> list[GateResult]:
     """Evaluate the gates of ``gf`` (all, or the names in ``only``); ``echo(line)`` gets one line
-    per check as soon as a gate is done. Bad input raises before any output file is written."""
+    per check as soon as a gate is done. Bad input raises before any output file is written.
+    ``into``: a list the results are appended to as they come (what was done when interrupted)."""
     ctx = _Context(gf, variant)
-    out = []
+    out = [] if into is None else into
     for g in gf.select(only):
         r = run_gate(ctx, g)
         out.append(r)
@@ -218,20 +226,47 @@ def run_gates(gf: GateFile, only=None, variant=None, echo=None) -> list[GateResu
     return out
 
 
-def run_gate_file(path, out_dir=None, only=None, variant=None, echo=print) -> tuple[int, list[GateResult]]:
+OUTPUT_FILES = ("junit.xml", "index.html")
+
+
+def _write_outputs(out_dir: Path, path, results, wall: float, interrupted: str | None = None):
+    write_junit(out_dir / "junit.xml", results, suite=Path(path).stem, time_s=wall, interrupted=interrupted)
+    title = f"shadowlab gate: {path}" + (f" (INTERRUPTED: {interrupted})" if interrupted else "")
+    write_page(out_dir / "index.html", results, title=title)
+    if not (out_dir / MARKER).is_file():
+        (out_dir / MARKER).write_text(marker_text("gate", OUTPUT_FILES), encoding="utf-8")
+
+
+def run_gate_file(path, out_dir=None, only=None, variant=None, echo=print,
+                  force: bool = False) -> tuple[int, list[GateResult]]:
     """``shadowlab gate``: evaluate, print one line per check, write ``out_dir/junit.xml`` and
     ``out_dir/index.html``; returns (exit code 0 all passed / 1 a gate failed, results). The CLI
-    turns 1 into :class:`~shadowlab.errors.GateFailure` (exit code 1)."""
+    turns 1 into :class:`~shadowlab.errors.GateFailure` (exit code 1). Interrupted (SIGINT /
+    SIGTERM: :class:`~shadowlab.errors.Interrupted` or ``KeyboardInterrupt``), it writes a
+    ``junit.xml`` that says so and re-raises."""
     gf = load_gate_file(path)
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        claim_dir(out_dir, "gate", force=force, protected=[gf.references, store.root()], files=OUTPUT_FILES)
     t0 = time.perf_counter()
-    results = run_gates(gf, only=only, variant=variant, echo=echo)
+    results: list = []
+    n_gates = len(gf.select(only))
+    try:
+        run_gates(gf, only=only, variant=variant, echo=echo, into=results)
+    except (KeyboardInterrupt, Interrupted) as e:
+        what = e.signal_name if isinstance(e, Interrupted) else "SIGINT"
+        note = f"after {len(results)} of {n_gates} gates; the run is incomplete"
+        if out_dir is not None:
+            _write_outputs(out_dir, path, results, time.perf_counter() - t0, interrupted=f"interrupted by {what} {note}")
+            note += f" ({out_dir / 'junit.xml'} records it as an error)"
+        if isinstance(e, Interrupted):
+            e.detail = note
+        raise
     wall = time.perf_counter() - t0
     n_fail = sum(not r.passed for r in results)
     n_checks = sum(len(r.checks) for r in results)
     if out_dir is not None:
-        out_dir = Path(out_dir)
-        write_junit(out_dir / "junit.xml", results, suite=Path(path).stem, time_s=wall)
-        write_page(out_dir / "index.html", results, title=f"shadowlab gate: {path}")
+        _write_outputs(out_dir, path, results, wall)
     if echo:
         echo(f"{len(results) - n_fail} of {len(results)} gates passed ({n_checks} checks, {wall:.1f} s)"
              + (f"; JUnit {out_dir / 'junit.xml'}, failures {out_dir / 'index.html'}" if out_dir is not None else ""))

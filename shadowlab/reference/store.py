@@ -38,6 +38,7 @@ import hashlib
 import json
 import os
 import re
+import shlex
 import shutil
 import socket
 import sys
@@ -220,6 +221,16 @@ def _note(text: str | None) -> None:
 
 
 # ---------------------------------------------------------------------------------- writing
+def scene_arg(scene_spec) -> str:
+    """How the fix texts name a scene: its built-in name, or the path of its file when it is not a
+    built-in (``shadowlab reference NAME`` fails for a scene only known by its path)."""
+    src = str(getattr(scene_spec, "source", "") or "")
+    builtin = Path(__file__).resolve().parents[2] / "scenes" / f"{scene_spec.name}.toml"
+    if not src or (Path(src).exists() and Path(src).resolve() == builtin.resolve()):
+        return scene_spec.name
+    return shlex.quote(src)
+
+
 def _channels(truth: Truth) -> dict:
     ch = {}
     for name, lt in truth.lights.items():
@@ -412,7 +423,7 @@ def load(scene_spec, resolution=None, base: Path | None = None, check_hash: bool
     damaged (checksum, keys, channels, size) or stale."""
     res = tuple(resolution or scene_spec.camera.resolution)
     d = path_for(scene_spec.name, res, base)
-    cmd = reference_command(scene_spec.name, res)
+    cmd = reference_command(scene_arg(scene_spec), res)
     _note(recover(d))
     if not d.exists():
         have = sorted(p.name for p in d.parent.iterdir() if _RES_DIR.match(p.name)) if d.parent.is_dir() else []

@@ -35,6 +35,7 @@ import numpy as np
 
 from shadowlab.errors import InputError
 from shadowlab.report import images as _im
+from shadowlab.report.outdir import MARKER, claim_dir, marker_text
 
 __all__ = ["build", "summary_table", "stats_tables", "validate", "run_to_json", "to_jsonable", "higher_is_better"]
 
@@ -568,14 +569,18 @@ def _install(tmp: Path, out: Path) -> None:
         if os.path.lexists(old_img):
             os.rename(old_img, out / "img")
         raise
-    for f in ("metrics.json", "summary.md", "index.html"):  # index.html last: it links the rest
+    for f in (MARKER, "metrics.json", "summary.md", "index.html"):  # index.html last: it links the rest
         os.replace(tmp / f, out / f)
     shutil.rmtree(tmp, ignore_errors=True)
 
 
-def build(out_dir, run: Mapping) -> Path:
+def build(out_dir, run: Mapping, *, force: bool = False, protected=(), kind: str = "compare") -> Path:
     """Write ``out_dir/index.html``, ``summary.md``, ``metrics.json`` and ``img/*.png`` for one run;
     returns the path of index.html.
+
+    ``out_dir`` must be ours or new (:func:`shadowlab.report.outdir.claim_dir`: an existing
+    directory without the ``.shadowlab-report`` marker is refused unless ``force``) and outside
+    the ``protected`` directories (the reference store).
 
     ``run`` = {"scene", "resolution": [W, H], "reference": {"spp", "max_std_error", ...},
     "lights": [names], "images": {"truth": {"shaded": H×W×3, "vis": {light: H×W}},
@@ -595,8 +600,7 @@ def build(out_dir, run: Mapping) -> Path:
     """
     out = Path(out_dir)
     imgs = validate(run)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"report output {out} exists and is not a directory; choose another --out")
+    claim_dir(out, kind, force=force, protected=protected, files=OUTPUT_FILES + ("img/",))
     for f in OUTPUT_FILES:
         if (out / f).is_dir():
             raise InputError(f"report output {out / f} is a directory; remove it or choose another --out")
@@ -614,6 +618,7 @@ def build(out_dir, run: Mapping) -> Path:
         (tmp / "metrics.json").write_text(json_text, encoding="utf-8")
         (tmp / "summary.md").write_text(md_text, encoding="utf-8")
         (tmp / "index.html").write_text(html_text, encoding="utf-8")
+        (tmp / MARKER).write_text(marker_text(kind, OUTPUT_FILES + OUTPUT_DIRS), encoding="utf-8")
         os.chmod(tmp, 0o755)  # mkdtemp makes it 0700; the report directory should be readable
         _install(tmp, out)
     except BaseException:
