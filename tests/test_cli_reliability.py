@@ -86,11 +86,13 @@ _WRAPPER = ("import sys\nimport shadowlab.cli as c\nprint('ready', flush=True)\n
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_signal_stops_a_running_reference_with_one_line_and_nothing_stored(tmp_path, sig, code):
     """A real `shadowlab reference` process (its imports done, then the command running: a slow
-    truth, target error 0.001 on 64²) gets the signal: exit 128 + signal, one line on stderr, no
+    truth, target error 0.0002 and a 4096-round cap on 64²: minutes of rendering) gets the signal: exit 128 + signal, one line on stderr, no
     traceback, and the store holds nothing (no reference, no temporary directory)."""
     scene = _scene(tmp_path, res=64)
     base = tmp_path / "refs"
-    p = subprocess.Popen([sys.executable, "-c", _WRAPPER, "reference", str(scene), "--target-se", "0.001"],
+    base.mkdir()                 # an existing store: creating one would print a note of its own
+    p = subprocess.Popen([sys.executable, "-c", _WRAPPER, "reference", str(scene), "--target-se", "0.0002",
+                          "--max-rounds", "4096"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_child_env(base), cwd=ROOT)
     try:
         assert p.stdout.readline().strip() == "ready"
