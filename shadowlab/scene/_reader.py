@@ -3,9 +3,45 @@ every error names the file, the key and what was expected."""
 
 from __future__ import annotations
 
+import difflib
 import math
 
 from ..errors import SceneError
+
+#: common misspellings and synonyms that difflib's ratio does not catch (``field_of_view`` is far
+#: from ``fov`` by edit distance); each maps to the key of the format that means it
+SYNONYMS = {"colour": "color", "field_of_view": "fov", "fovy": "fov", "fov_degrees": "fov", "angle_of_view": "fov",
+            "res": "resolution", "look_at": "target", "lookat": "target", "at": "target",
+            "centre": "center", "eye": "position", "origin": "position", "pos": "position", "type": "kind",
+            "kind": "type", "albedo_color": "albedo", "reflectance": "albedo", "two-sided": "two_sided",
+            "twosided": "two_sided", "shadowmap": "shadow_map", "shadow_map_size": "shadow_map",
+            "shadow_map_resolution": "shadow_map", "diameter": "radius", "half_extents": "half",
+            "half_size": "half", "width": "size", "height": "size", "desc": "description", "title": "name"}
+
+
+def did_you_mean(word, choices) -> str:
+    """``" (did you mean 'x'?)"`` for the choice closest to ``word`` (difflib, case-insensitive,
+    plus :data:`SYNONYMS`), or ``""`` when none is close.
+
+    >>> did_you_mean("colour", ["color", "power"]), did_you_mean("powr", ["color", "power"])
+    (" (did you mean 'color'?)", " (did you mean 'power'?)")
+    >>> did_you_mean("zzz", ["color", "power"])
+    ''
+    """
+    choices = [str(c) for c in choices]
+    w = str(word)
+    syn = SYNONYMS.get(w.lower())
+    if syn in choices and syn != w:
+        return f" (did you mean {syn!r}?)"
+    lower = {c.lower(): c for c in choices}
+    m = difflib.get_close_matches(w.lower(), list(lower), n=1, cutoff=0.6)
+    return f" (did you mean {lower[m[0]]!r}?)" if m else ""
+
+
+def unknown_key_text(key, allowed, what: str) -> str:
+    """The message for an unknown ``key``: the suggestion, what the table takes and the fix."""
+    return (f"unknown key {key!r}{did_you_mean(key, allowed)}; {what} takes: {', '.join(sorted(allowed))}. "
+            "Fix the spelling or remove the key")
 
 
 class _Reader:
@@ -20,6 +56,30 @@ class _Reader:
 
     def has(self, key):
         return key in self.t
+
+    def refuse(self, key: str, text: str):
+        """Refuse ``key`` with ``text`` (what is wrong and the fix)."""
+        raise SceneError(f"{self.path}: {self.where}{'.' if self.where else ''}{key}: {text}")
+
+    def unknown(self, key: str, allowed, what: str):
+        """Refuse a key ``what`` (e.g. "[camera]") does not take, suggesting the closest allowed one."""
+        raise SceneError(f"{self.path}: {self.where}{'.' if self.where else ''}{key}: "
+                         f"{unknown_key_text(key, allowed, what)}")
+
+    def check_keys(self, allowed, what: str):
+        """Refuse the first key of the table not in ``allowed``."""
+        for k in self.t:
+            if k not in allowed:
+                self.unknown(k, allowed, what)
+
+    def bool(self, key, default: bool):
+        """A TOML boolean (``true`` / ``false``); a string such as ``"no"`` or a number is refused."""
+        if key not in self.t:
+            return default
+        v = self.t[key]
+        if not isinstance(v, bool):
+            self.fail(key, "true or false (a TOML boolean, without quotes)", v)
+        return v
 
     def str(self, key, default=None, choices=None):
         if key not in self.t:
@@ -45,7 +105,7 @@ class _Reader:
             self.fail(key, f"a number in [{lo}, {hi}]", v)
         return float(v)
 
-    def int(self, key, default=None, choices=None, lo=None):
+    def int(self, key, default=None, choices=None, lo=None, hi=None, why: str = ""):
         v = self.t.get(key, default)
         if v is None:
             self.fail(key, "an integer (missing)")
@@ -55,6 +115,8 @@ class _Reader:
             self.fail(key, f"one of {', '.join(map(str, choices))}", v)
         if lo is not None and v < lo:
             self.fail(key, f"an integer >= {lo}", v)
+        if hi is not None and v > hi:
+            self.fail(key, f"an integer <= {hi}{why}", v)
         return v
 
     def vec(self, key, n=3, default=None, positive=False):
@@ -82,6 +144,8 @@ def rotations(r: _Reader, table: dict) -> list:
                                         any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in q)
                                         for q in rot):
         r.fail("rotate", "[ax, ay, az, degrees] or a list of them", table.get("rotate"))
+    if any(not all(math.isfinite(x) for x in q) for q in rot):
+        r.fail("rotate", "finite numbers in every [ax, ay, az, degrees]", table.get("rotate"))
     if any(not any(q[:3]) for q in rot):
         r.fail("rotate", "a non-zero rotation axis in every [ax, ay, az, degrees]", table.get("rotate"))
     return rot
