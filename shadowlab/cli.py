@@ -18,6 +18,7 @@ from .fit import Budget
 from .fit import fit as run_fit
 from .fit.preset import load as load_preset
 from .fit.report import summary_table as fit_table
+from .gate.gatefile import SEED_MAX
 from .gate.runner import run_gate_file
 from .pipeline import compare as cmp
 from .pipeline import parse_resolution
@@ -74,7 +75,7 @@ def techniques(markdown: bool = typer.Option(False, "--markdown", help="Print Ma
 def reference(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
               resolution: Optional[str] = typer.Option(None, "--resolution", "-r", help="WxH (default: the scene's)."),
               force: bool = typer.Option(False, "--force", help="Replace an existing reference."),
-              seed: int = typer.Option(0, "--seed"),
+              seed: int = typer.Option(0, "--seed", min=0, max=SEED_MAX, help=f"Random seed, 0..{SEED_MAX}."),
               target_se: float = typer.Option(0.005, "--target-se", help="Per-pixel standard error to reach."),
               spp: int = typer.Option(256, "--spp", help="Samples per pixel of the mi.render image."),
               ss: int = typer.Option(1, "--ss", min=1, max=8, help="s×s shading points per pixel (supersampling)."),

@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import difflib
 import math
+from collections.abc import Mapping
 
-from ..errors import SceneError
+from ..errors import InputError, SceneError
 
 #: common misspellings and synonyms that difflib's ratio does not catch (``field_of_view`` is far
 #: from ``fov`` by edit distance); each maps to the key of the format that means it
@@ -133,6 +134,24 @@ class _Reader:
         if positive and any(x <= 0 for x in v):
             self.fail(key, f"a list of {n} positive numbers", v)
         return tuple(float(x) for x in v)
+
+
+def check_param_values(where: str, t, params: Mapping) -> None:
+    """Names and TOML types of a technique's parameter values from a file (a gate's ``params``, a
+    preset): an unknown name gets the closest one; a boolean parameter takes only true / false and a
+    number parameter only a number (``"no"`` or ``1`` for a boolean is refused, not read as true).
+    Ranges are checked by the parameter itself (:meth:`Param.parse`). ``t``: a
+    :class:`~shadowlab.techniques.base.Technique` (read by duck typing: scene imports no technique)."""
+    have = [p.name for p in t.params]
+    for k, v in params.items():
+        if k not in have:
+            raise InputError(f"{where}: technique {t.name!r} has no parameter {k!r}{did_you_mean(k, have)}; its "
+                             f"parameters: {', '.join(have) or '(none)'}")
+        p = t.param(k)
+        if p.kind == "bool" and not isinstance(v, bool):
+            raise InputError(f"{where}: {t.name}.{k}: expected true or false (a boolean, without quotes), got {v!r}")
+        if p.kind in ("int", "float") and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            raise InputError(f"{where}: {t.name}.{k}: expected a number (without quotes), got {v!r}")
 
 
 def rotations(r: _Reader, table: dict) -> list:
