@@ -103,7 +103,8 @@ class _Reader:
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             self.fail(key, "a finite number", v)
         if (lo is not None and v < lo) or (hi is not None and v > hi):
-            self.fail(key, f"a number in [{lo}, {hi}]", v)
+            self.fail(key, f"a number in [{lo}, {hi}]" if lo is not None and hi is not None else
+                      f"a number >= {lo:g}" if lo is not None else f"a number <= {hi:g}", v)
         return float(v)
 
     def int(self, key, default=None, choices=None, lo=None, hi=None, why: str = ""):
