@@ -13,7 +13,10 @@ description = "..."
 [[sdf]]       SDF-only objects without a Mitsuba twin (Mandelbulb, CSG, ...): see shadowlab.scene.sdf_spec
 ```
 
-Every error names the file, the key and what was expected (exit 2). No Mitsuba backend here:
+Every error names the file, the key and what was expected (exit 2): an unknown key (with the
+closest known one), a key of another light kind or shape type (:data:`LIGHT_KEYS`,
+:data:`SHAPE_KEYS`), a non-boolean ``two_sided`` / ``caps``, a number out of range, a scene name
+that is not one plain directory name of the reference store. No Mitsuba backend here:
 the spec is pure data, so it can be hashed, listed and validated without one (an
 ``alpha_texture`` is opened with ``mitsuba.Bitmap``, which needs no variant, to validate it).
 """
