@@ -102,6 +102,13 @@ def test_keys_of_another_kind_are_refused_naming_the_kinds_keys(edit, parts):
     _fails(_scene(edit), *parts)
 
 
+def test_a_misspelt_kind_or_type_gets_a_suggestion():
+    _fails(_scene(lambda d: d["lights"][0].update(kind="rec")), "lights[0].kind: expected one of rect,",
+           "got 'rec' (did you mean 'rect'?)")
+    _fails(_scene(lambda d: d["shapes"][1].update(type="sphre")), "got 'sphre' (did you mean 'sphere'?)")
+    _fails(_scene(lambda d: d.update(sdf=[{"type": "mandelbub"}])), "(did you mean 'mandelbulb'?)")
+
+
 def test_delta_and_area_emission_keys_must_match_the_radius():
     point = {"name": "p", "kind": "point", "position": [0, 4, 0]}
     _fails(_scene(lambda d: d["lights"].__setitem__(0, {**point, "radiance": 3.0})),

@@ -51,8 +51,10 @@ class _Reader:
     def __init__(self, path: str, where: str, table: dict):
         self.path, self.where, self.t = path, where, table
 
-    def fail(self, key: str, expected: str, got=None):
+    def fail(self, key: str, expected: str, got=None, choices=None):
         shown = "" if got is None else f", got {got!r}"
+        if choices is not None and isinstance(got, str):
+            shown += did_you_mean(got, choices)
         raise SceneError(f"{self.path}: {self.where}{'.' if self.where else ''}{key}: expected {expected}{shown}")
 
     def has(self, key):
@@ -91,7 +93,7 @@ class _Reader:
         if not isinstance(v, str):
             self.fail(key, "a string", v)
         if choices and v not in choices:
-            self.fail(key, f"one of {', '.join(choices)}", v)
+            self.fail(key, f"one of {', '.join(choices)}", v, choices=choices)
         return v
 
     def num(self, key, default=None, lo=None, hi=None):
