@@ -348,6 +348,11 @@ def test_a_preset_bool_parameter_takes_only_booleans():
     assert preset_mod.from_dict({tech: {name: False}}, "p.toml").values == {tech: {name: False}}
 
 
+def test_a_directory_given_as_a_preset_says_so(tmp_path):
+    with pytest.raises(InputError, match="is a directory; give a preset file such as"):
+        preset_mod.load(tmp_path)
+
+
 def test_a_saved_preset_loads(tmp_path):
     p = preset_mod.save(tmp_path / "p.toml", "p", {"pcf": {"kernel": 5}}, meta={"scene": "contact"})
     assert preset_mod.load(p).values == {"pcf": {"kernel": 5}}

@@ -110,6 +110,8 @@ def from_dict(data, path: str = "<preset>") -> Preset:
 def load(path) -> Preset:
     """Read and validate a preset file; InputError (exit 2) names the file and the problem."""
     p = Path(path)
+    if p.is_dir():
+        raise InputError(f"preset {p} is a directory; give a preset file such as {p / 'preset.toml'}")
     if not p.is_file():
         raise InputError(f"preset file {p} does not exist (write one with `shadowlab fit ... --save-preset {p}`)")
     try:
