@@ -33,6 +33,7 @@ from .gate.runner import run_gate_file
 from .pipeline import compare as cmp
 from .pipeline import parse_resolution
 from .pipeline import reference as ref
+from .reference.truth import SEED_MAX
 from .reference.store import list_references
 from .report import summary_table
 from .scene.spec import builtin_names, load_spec, resolve
@@ -116,8 +117,8 @@ def techniques(markdown: bool = typer.Option(False, "--markdown", help="Print Ma
 def reference(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
               resolution: Optional[str] = typer.Option(None, "--resolution", "-r", help="WxH (default: the scene's)."),
               force: bool = typer.Option(False, "--force", help="Replace an existing reference."),
-              seed: int = typer.Option(0, "--seed", callback=_number(0, 2**32 - 1, what="a seed"),
-                                       help="Random seed, 0..4294967295."),
+              seed: int = typer.Option(0, "--seed", callback=_number(0, SEED_MAX, what="a seed"),
+                                       help=f"Random seed, 0..{SEED_MAX}."),
               target_se: float = typer.Option(0.005, "--target-se", callback=_number(
                   0.0, 0.5, lo_open=True, what="a standard error"), help="Per-pixel standard error to reach, (0, 0.5]."),
               spp: int = typer.Option(256, "--spp", callback=_number(0, 1 << 20, what="a sample count"),

@@ -19,7 +19,7 @@ from . import backend
 from .errors import InputError, ReferenceError_
 from .metrics import compare_shaded, penumbra_mask, pooled_visibility
 from .reference import sdf_truth, store
-from .reference.truth import render_truth, target_missed
+from .reference.truth import SEED_MAX, render_truth, target_missed
 from .render.frame import make_frame
 from .render.shading import compose
 from .report import build
@@ -60,7 +60,7 @@ def check_reference_args(*, seed=0, target_se=0.005, spp=256, ss=1, max_rounds=6
             or not 0 < target_se <= 0.5:
         raise InputError(f"--target-se {target_se!r}: expected a standard error in (0, 0.5] (visibility lies in "
                          "[0, 1]), e.g. 0.005")
-    integer("--seed", seed, 0, 2**32 - 1)
+    integer("--seed", seed, 0, SEED_MAX)
     integer("--spp", spp, 0, 1 << 20)
     integer("--ss", ss, 1, 8)
     integer("--max-rounds", max_rounds, 1, 1 << 16)

@@ -29,6 +29,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..report.outdir import check_out_file
+from ..scene._reader import check_param_values, did_you_mean
 from ..techniques import base
 
 RESERVED = ("name", "description", "meta")
@@ -73,7 +74,13 @@ def from_dict(data, path: str = "<preset>") -> Preset:
     name = data.get("name", Path(path).stem if path != "<preset>" else "preset")
     if not isinstance(name, str) or not name.strip():
         raise InputError(f"preset {path}: `name` must be a non-empty string")
+    if "camera" in data or "gate" in data:
+        what = "a scene file ([camera], [[lights]])" if "camera" in data else "a gate file ([[gate]] tables)"
+        raise InputError(f"preset {path}: this is {what}, not a preset; give a preset written by `shadowlab fit` "
+                         "(e.g. DIR/preset.toml: [technique] tables of parameter = value)")
     desc = data.get("description", "")
+    if not isinstance(desc, str):
+        raise InputError(f"preset {path}: `description` must be a string, got {desc!r}")
     meta = data.get("meta", {})
     if not isinstance(meta, dict):
         raise InputError(f"preset {path}: `meta` must be a table")
@@ -81,13 +88,16 @@ def from_dict(data, path: str = "<preset>") -> Preset:
     for tech, params in data.items():
         if tech in RESERVED:
             continue
-        try:
-            t = base.get(tech)
-        except InputError as e:
-            raise InputError(f"preset {path}: {e}") from None
+        if tech not in base.names():
+            known = list(base.names()) + list(RESERVED)
+            raise InputError(f"preset {path}: unknown technique {tech!r}{did_you_mean(tech, known)}; a preset's "
+                             f"top-level keys are {', '.join(RESERVED)} and technique names: "
+                             f"{', '.join(base.names())}")
+        t = base.get(tech)
         if not isinstance(params, dict):
             raise InputError(f"preset {path}: [{tech}] must be a table of parameter = value, "
                              f"got {type(params).__name__}")
+        check_param_values(f"preset {path}: [{tech}]", t, params)
         vals = {}
         for k, v in params.items():
             try:
@@ -103,6 +113,8 @@ def from_dict(data, path: str = "<preset>") -> Preset:
 def load(path) -> Preset:
     """Read and validate a preset file; InputError (exit 2) names the file and the problem."""
     p = Path(path)
+    if p.is_dir():
+        raise InputError(f"preset {p} is a directory; give a preset file such as {p / 'preset.toml'}")
     if not p.is_file():
         raise InputError(f"preset file {p} does not exist (write one with `shadowlab fit ... --save-preset {p}`)")
     try:

@@ -18,10 +18,13 @@ except ModuleNotFoundError:  # pragma: no cover - python < 3.11
     import tomli as tomllib
 
 from ..errors import InputError, SceneError
+from ..reference.truth import SEED_MAX
+from ..scene._reader import check_param_values, did_you_mean
 from ..scene.spec import load_spec, resolve
 from ..techniques import base as tbase
 from .check import TARGETS
-from .thresholds import SHADED_METRICS, TECHNIQUE_SHADED_METRICS, VISIBILITY_METRICS, Thresholds, parse_thresholds
+from .thresholds import (SHADED_METRICS, STAT_DEFAULTS, TECHNIQUE_SHADED_METRICS, VISIBILITY_METRICS, Thresholds,
+                         parse_thresholds)
 
 __all__ = ["CandidateSpec", "GateSpec", "GateFile", "load_gate_file", "parse_gate_file", "FORMAT_VERSION"]
 
@@ -85,10 +88,22 @@ class GateFile:
         return [have[n] for n in names]
 
 
+
+
 def _keys(where: str, table: Mapping, allowed) -> None:
     unknown = [k for k in table if k not in allowed]
     if unknown:
-        raise InputError(f"{where}: unknown key(s) {', '.join(map(repr, unknown))}; allowed: {', '.join(allowed)}")
+        hints = "".join(did_you_mean(k, allowed) for k in unknown[:1])
+        raise InputError(f"{where}: unknown key(s) {', '.join(map(repr, unknown))}{hints}; allowed: "
+                         f"{', '.join(allowed)}. Fix the spelling or remove the key")
+
+
+def _technique(where: str, name: str):
+    """The registered technique ``name``, or an InputError suggesting the closest name."""
+    if name not in tbase.names():
+        raise InputError(f"{where}: unknown technique {name!r}{did_you_mean(name, tbase.names())}; registered "
+                         f"techniques: {', '.join(tbase.names())}")
+    return tbase.get(name)
 
 
 def _str(where: str, key: str, v, required=False) -> str | None:
@@ -119,7 +134,10 @@ def _candidate(where: str, base: Path, v, target: str, spec) -> CandidateSpec:
                          "technique = \"NAME\" (+ params), exr = \"FILE.exr\" (+ channel) or truth = true (+ seed)")
     kinds = [k for k in _CAND_KEYS if k in v]
     if len(kinds) != 1:
-        raise InputError(f"{w}: give exactly one of technique, exr, truth (got {', '.join(kinds) or 'none'})")
+        every = sorted({k for ks in _CAND_KEYS.values() for k in ks})
+        odd = [k for k in v if k not in every]
+        hint = f"; unknown key {odd[0]!r}{did_you_mean(odd[0], every)}" if odd else ""
+        raise InputError(f"{w}: give exactly one of technique, exr, truth (got {', '.join(kinds) or 'none'}){hint}")
     kind = kinds[0]
     _keys(w, v, _CAND_KEYS[kind])
     if kind == "technique":
@@ -127,9 +145,10 @@ def _candidate(where: str, base: Path, v, target: str, spec) -> CandidateSpec:
         params = v.get("params", {})
         if not isinstance(params, Mapping):
             raise InputError(f"{w}: params must be a table such as params = {{ kernel = 5 }}, got {params!r}")
+        t = _technique(w, name)
+        check_param_values(w, t, params)
         try:
-            t = tbase.get(name)
-            t.resolve(dict(params))  # unknown names and out-of-range values raise here
+            t.resolve(dict(params))  # out-of-range values raise here
         except InputError as e:
             raise InputError(f"{w}: {e}") from None
         return CandidateSpec("technique", technique=name, params=dict(params))
@@ -137,9 +156,9 @@ def _candidate(where: str, base: Path, v, target: str, spec) -> CandidateSpec:
         if v["truth"] is not True:
             raise InputError(f"{w}: truth must be true (render the ground truth now), got {v['truth']!r}")
         seed = v.get("seed")
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise InputError(f"{w}: a truth candidate needs seed = N (an integer ≥ 0 other than the reference's "
-                             f"seed), got {seed!r}")
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0 or seed > SEED_MAX:
+            raise InputError(f"{w}: a truth candidate needs seed = N (an integer in 0..{SEED_MAX} other than the "
+                             f"reference's seed), got {seed!r}")
         return CandidateSpec("truth", seed=seed)
     p = Path(_str(w, "exr", v["exr"]))
     p = p if p.is_absolute() else base / p
@@ -150,6 +169,13 @@ def _candidate(where: str, base: Path, v, target: str, spec) -> CandidateSpec:
     if var and se:
         raise InputError(f"{w}: give variance or std_error, not both")
     return CandidateSpec("exr", path=p, channel=_str(w, "channel", v.get("channel")), variance=var, std_error=se)
+
+
+def _stat_keys(where: str, table: Mapping) -> None:
+    odd = [k for k in table if k not in STAT_DEFAULTS]
+    if odd:
+        raise InputError(f"{where}: unknown statistical setting(s) {', '.join(odd)}{did_you_mean(odd[0], STAT_DEFAULTS)}; "
+                         f"known: {', '.join(STAT_DEFAULTS)}")
 
 
 def _resolution(where: str, v):
@@ -166,9 +192,13 @@ def parse_gate_file(data: Mapping, path: Path) -> GateFile:
     path = Path(path)
     base = path.resolve().parent
     where = str(path)
+    if "camera" in data and "gate" not in data:
+        raise InputError(f"{where}: this is a scene file ([camera], [[lights]]), not a gate file; give a gate file "
+                         "(version, references, [[gate]] tables; e.g. references/gates.toml), or use the scene with "
+                         f"`shadowlab compare {path} ...` / `shadowlab reference {path}`")
     _keys(where, data, _TOP_KEYS)
     ver = data.get("version", FORMAT_VERSION)
-    if ver != FORMAT_VERSION:
+    if isinstance(ver, bool) or ver != FORMAT_VERSION:
         raise InputError(f"{where}: version = {ver!r} is not supported; this shadowlab reads version {FORMAT_VERSION}")
     refs = data.get("references", ".")
     if not isinstance(refs, str):
@@ -181,6 +211,7 @@ def parse_gate_file(data: Mapping, path: Path) -> GateFile:
     stat_defaults = defaults.get("statistical", {})
     if not isinstance(stat_defaults, Mapping):
         raise InputError(f"{where} [defaults]: statistical must be a table")
+    _stat_keys(f"{where} [defaults.statistical]", stat_defaults)
     gates = data.get("gate")
     if not isinstance(gates, list) or not gates or not all(isinstance(g, Mapping) for g in gates):
         raise InputError(f"{where}: no gates: add one or more [[gate]] tables (name, scene, candidate, "
@@ -197,8 +228,8 @@ def parse_gate_file(data: Mapping, path: Path) -> GateFile:
         scene, spec = _scene(w, base, g.get("scene"))
         res = _resolution(w, g.get("resolution"))
         target = g.get("target", "shaded")
-        if target not in TARGETS:
-            raise InputError(f"{w}: target = {target!r}; one of {', '.join(TARGETS)}")
+        if not isinstance(target, str) or target not in TARGETS:
+            raise InputError(f"{w}: target = {target!r}{did_you_mean(target, TARGETS)}; one of {', '.join(TARGETS)}")
         lights = [l.name for l in spec.lights]
         light = _str(w, "light", g.get("light"))
         if target == "visibility":
@@ -211,6 +242,14 @@ def parse_gate_file(data: Mapping, path: Path) -> GateFile:
         elif light is not None:
             raise InputError(f"{w}: light is only used with target = \"visibility\"")
         cand = _candidate(w, base, g.get("candidate"), target, spec)
+        if isinstance(g.get("statistical"), Mapping):
+            _stat_keys(f"{w}.statistical", g["statistical"])
+        if isinstance(g.get("budget"), Mapping):
+            metrics = tuple(dict.fromkeys(SHADED_METRICS + TECHNIQUE_SHADED_METRICS + VISIBILITY_METRICS))
+            odd = [k for k in g["budget"] if k not in metrics]
+            if odd:
+                raise InputError(f"{w}: unknown budget metric {odd[0]!r}{did_you_mean(odd[0], metrics)}; known: "
+                                 f"{', '.join(metrics)}")
         th = parse_thresholds({k: g[k] for k in ("statistical", "budget") if k in g}, where=w,
                               stat_defaults=stat_defaults)
         allowed = VISIBILITY_METRICS if target == "visibility" else (

@@ -37,6 +37,10 @@ from ..render.frame import FrameContext
 from ..render.gbuffer import vec_numpy
 from ..render.shading import sample_light
 
+#: the largest seed a truth render takes: Mitsuba's ``mi.render`` gets seed·1000 + i (i < 1000), a 32-bit
+#: unsigned integer (``shadowlab reference --seed`` has the same range)
+SEED_MAX = (2 ** 32 - 1000) // 1000
+
 MIN_SE_ROUNDS = 8  # pilot rounds of a penumbra pixel before its number of rounds is planned
 PLAN_MARGIN = 1.25  # planned rounds = margin · pilot variance / target²
 

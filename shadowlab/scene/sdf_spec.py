@@ -44,6 +44,8 @@ from ._reader import _Reader, rotations
 PRIMITIVES = ("sphere", "box", "cylinder", "capsule", "segment", "plane", "mandelbulb")
 OPERATIONS = ("union", "intersection", "difference")
 TYPES = PRIMITIVES + OPERATIONS
+#: cap of a Mandelbulb's ``iterations``: more only costs time (the estimate converges in float32 long before)
+MANDELBULB_MAX_ITERATIONS = 64
 
 _COMMON = {"type", "translate", "rotate", "scale", "offset"}
 _KEYS = {
@@ -68,7 +70,14 @@ def _object(path: str, where: str, st, top: bool, depth: int = 0) -> dict:
     allowed = _COMMON | _KEYS[typ] | ({"name", "albedo"} if top else set())
     for k in st:
         if k not in allowed:
-            r.fail(k, f"no such key for type {typ!r} (allowed: {', '.join(sorted(allowed))})", None)
+            others = [t for t, ks in _KEYS.items() if k in ks] if k not in _COMMON | {"name", "albedo"} else []
+            if others:
+                r.refuse(k, f"type {typ!r} has no {k!r} (it is a key of {', '.join(others)}); type {typ!r} takes: "
+                         f"{', '.join(sorted(allowed))}. Remove the key or change the type")
+            if k in ("name", "albedo"):
+                r.refuse(k, f"a CSG child has no {k!r} (only top-level [[sdf]] objects have a name and an albedo); "
+                         "remove it")
+            r.unknown(k, allowed, f"an [[sdf]] object of type {typ!r}")
     scale = st.get("scale", 1.0)
     if isinstance(scale, (int, float)) and not isinstance(scale, bool):
         scale = r.num("scale", default=1.0, lo=1e-9)
@@ -95,7 +104,9 @@ def _object(path: str, where: str, st, top: bool, depth: int = 0) -> dict:
         out["height"] = r.num("height", default=0.0)
     elif typ == "mandelbulb":
         out["power"] = r.num("power", default=8.0, lo=2.0, hi=16.0)
-        out["iterations"] = r.int("iterations", default=8, lo=1)
+        out["iterations"] = r.int("iterations", default=8, lo=1, hi=MANDELBULB_MAX_ITERATIONS,
+                                  why=" (each iteration is a step of every distance evaluation; float32 "
+                                      "gains nothing past ~30)")
         out["bailout"] = r.num("bailout", default=2.0, lo=1.0 + 1e-6)
         out["step"] = r.num("step", default=1.0, lo=1e-3, hi=1.0)
     else:

@@ -13,7 +13,10 @@ description = "..."
 [[sdf]]       SDF-only objects without a Mitsuba twin (Mandelbulb, CSG, ...): see shadowlab.scene.sdf_spec
 ```
 
-Every error names the file, the key and what was expected (exit 2). No Mitsuba backend here:
+Every error names the file, the key and what was expected (exit 2): an unknown key (with the
+closest known one), a key of another light kind or shape type (:data:`LIGHT_KEYS`,
+:data:`SHAPE_KEYS`), a non-boolean ``two_sided`` / ``caps``, a number out of range, a scene name
+that is not one plain directory name of the reference store. No Mitsuba backend here:
 the spec is pure data, so it can be hashed, listed and validated without one (an
 ``alpha_texture`` is opened with ``mitsuba.Bitmap``, which needs no variant, to validate it).
 """
@@ -190,17 +193,75 @@ def _norm(v):
     return math.sqrt(sum(x * x for x in v))
 
 
-def parse(data: dict, path: str = "<scene>") -> SceneSpec:
-    """Validate a parsed TOML document and return a SceneSpec (raises SceneError)."""
-    top = _Reader(path, "", data)
-    known_top = {"name", "description", "camera", "lights", "shapes", "sdf"}
-    for k in data:
-        if k not in known_top:
-            top.fail(k, f"no such key (allowed: {', '.join(sorted(known_top))})", None)
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+#: largest ``shadow_map`` (texels per side): the light view holds a float64 depth image of
+#: res² texels per face while it is made (a 16384² face is 2 GiB; 200000² would be 298 GiB)
+SHADOW_MAP_MAX = 16384
+#: characters of a scene name: it names the scene's directory in the reference store
+SCENE_NAME_RE = r"[A-Za-z0-9_.-]+"
+TOP_KEYS = ("name", "description", "camera", "lights", "shapes", "sdf")
+CAMERA_KEYS = ("position", "target", "up", "fov", "resolution", "near", "far")
+_LIGHT_COMMON = ("name", "kind", "color", "power", "shadow_map", "depth_bits")
+#: the keys each light kind takes (README, "Scene format"); a key of another kind is refused
+LIGHT_KEYS = {
+    "rect": _LIGHT_COMMON + ("position", "target", "up", "size", "radiance", "near"),
+    "disk": _LIGHT_COMMON + ("position", "target", "up", "radius", "radiance", "near"),
+    "sphere": _LIGHT_COMMON + ("position", "radius", "radiance", "near"),
+    "spot": _LIGHT_COMMON + ("position", "target", "up", "radius", "angle", "radiance", "intensity", "near"),
+    "point": _LIGHT_COMMON + ("position", "radius", "radiance", "intensity", "near"),
+    "directional": _LIGHT_COMMON + ("direction", "up", "angular_diameter", "irradiance"),
+}
+_LIGHT_SIZE_KEY = {"rect": "size", "disk": "radius", "sphere": "radius", "spot": "radius", "point": "radius",
+                   "directional": "angular_diameter"}
+_SHAPE_COMMON = ("name", "type", "albedo", "translate", "rotate", "scale", "two_sided", "alpha_texture",
+                 "alpha_cutoff")
+#: the keys each shape type takes; a key of another type (``radius`` on a cube) is refused
+SHAPE_KEYS = {
+    "rectangle": _SHAPE_COMMON, "disk": _SHAPE_COMMON, "cube": _SHAPE_COMMON,
+    "sphere": _SHAPE_COMMON + ("center", "radius"),
+    "cylinder": _SHAPE_COMMON + ("p0", "p1", "radius", "caps"),
+    "ply": _SHAPE_COMMON + ("filename",), "obj": _SHAPE_COMMON + ("filename",),
+}
+
+
+def _kind_keys(r: _Reader, kind: str, table: dict, keys: dict, label: str):
+    """Refuse a key the light kind / shape type does not take, naming the kinds that take it."""
+    allowed = keys[kind]
+    for k in table:
+        if k in allowed:
+            continue
+        others = [o for o, ks in keys.items() if k in ks]
+        if others:
+            size = (f"; a {kind} light's size is {_LIGHT_SIZE_KEY[kind]!r}"
+                    if label == "light" and k in _LIGHT_SIZE_KEY.values() else "")
+            r.refuse(k, f"a {kind} {label} has no {k!r} (it is a key of {', '.join(others)} {label}s){size}; a "
+                     f"{kind} {label} takes: {', '.join(sorted(allowed))}. Remove the key or change the {label}'s "
+                     f"{'kind' if label == 'light' else 'type'}")
+        r.unknown(k, allowed, f"a {kind} {label}")
+
+
+def _scene_name(top: _Reader, data: dict, path: str) -> str:
+    """The scene's name: it names the scene's directory in the reference store, so it must be one
+    plain path component (no '/', no '..', not empty, not hidden)."""
+    explicit = "name" in data
     name = top.str("name", default=Path(path).stem)
+    if not re.fullmatch(SCENE_NAME_RE, name) or name.startswith("."):
+        why = ("letters, digits, '_', '-' or '.', not starting with '.' (it names the scene's directory in the "
+               "reference store)")
+        if explicit:
+            top.fail("name", why, name)
+        top.fail("name", f"{why}; the file name gives {name!r}: add name = \"...\" to the file or rename it", None)
+    return name
+
+
+def _camera(path: str, data: dict, top: _Reader) -> Camera:
     if "camera" not in data or not isinstance(data["camera"], dict):
         top.fail("camera", "a [camera] table with position, target, fov, resolution")
     c = _Reader(path, "camera", data["camera"])
+    c.check_keys(CAMERA_KEYS, "[camera]")
     res = c.t.get("resolution", [128, 128])
     if (not isinstance(res, list) or len(res) != 2 or
             any(isinstance(x, bool) or not isinstance(x, int) or x < 1 or x > 8192 for x in res)):
@@ -218,107 +279,147 @@ def parse(data: dict, path: str = "<scene>") -> SceneSpec:
                f"far = {CAMERA_FAR:g})", clip.get("far", clip.get("near")))
     camera = Camera(position=c.vec("position"), target=c.vec("target"), up=c.vec("up", default=(0, 1, 0)),
                     fov=c.num("fov", default=40.0, lo=1.0, hi=170.0), resolution=tuple(res), **clip)
-    if _norm([a - b for a, b in zip(camera.position, camera.target)]) == 0:
+    view = [a - b for a, b in zip(camera.target, camera.position)]
+    if _norm(view) == 0:
         c.fail("target", "a point different from camera.position", list(camera.target))
+    if _norm(camera.up) == 0:
+        c.fail("up", "a non-zero vector (the camera's up direction; the default is [0, 1, 0])", list(camera.up))
+    if _norm(_cross(camera.up, view)) <= 1e-6 * _norm(camera.up) * _norm(view):
+        c.fail("up", "a vector not parallel to the view direction target − position = "
+               f"[{', '.join(f'{x:g}' for x in view)}] (up fixes the camera's roll, which a vector along the view "
+               "does not); e.g. [0, 0, 1] when looking straight down", list(camera.up))
+    return camera
+
+
+def _light(path: str, i: int, lt, names: set) -> LightSpec:
+    if not isinstance(lt, dict):
+        raise SceneError(f"{path}: lights[{i}]: expected a table, got {lt!r}")
+    r = _Reader(path, f"lights[{i}]", lt)
+    kind = r.str("kind", choices=LIGHT_KINDS)
+    _kind_keys(r, kind, lt, LIGHT_KEYS, "light")
+    lname = r.str("name", default=f"L{i}")
+    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", lname):
+        r.fail("name", "a name of letters, digits, '_' or '-' starting with a letter", lname)
+    if lname in names:
+        r.fail("name", "a name not used by another light", lname)
+    names.add(lname)
+    kw = dict(name=lname, kind=kind, color=r.vec("color", default=(1, 1, 1)),
+              shadow_map=r.int("shadow_map", default=512, lo=8, hi=SHADOW_MAP_MAX,
+                               why=f" (texels per side; making a {SHADOW_MAP_MAX}² map takes 2 GiB per face, "
+                                   "and the memory grows with the square of the size)"),
+              depth_bits=r.int("depth_bits", default=32, choices=DEPTH_BITS),
+              up=r.vec("up", default=(0, 1, 0)))
+    if any(x < 0 for x in kw["color"]):
+        r.fail("color", "non-negative numbers", list(kw["color"]))
+    if r.has("up") and _norm(kw["up"]) == 0:
+        r.fail("up", "a non-zero vector (the light's up direction; the default is [0, 1, 0])", list(kw["up"]))
+    for k in ("power", "radiance", "irradiance", "intensity"):
+        if r.has(k):
+            kw[k] = r.num(k, lo=0.0)
+    if not any(k in kw for k in ("power", "radiance", "irradiance", "intensity")):
+        r.fail("power", "a number (the light's power in watts; or radiance / irradiance / intensity)")
+    if r.has("near"):
+        kw["near"] = r.num("near", lo=1e-6)
+    if kind == "directional":
+        kw["direction"] = r.vec("direction")
+        if _norm(kw["direction"]) == 0:
+            r.fail("direction", "a non-zero vector", list(kw["direction"]))
+        kw["angular_diameter"] = r.num("angular_diameter", default=0.0, lo=0.0, hi=30.0)
+    else:
+        kw["position"] = r.vec("position")
+        if kind in ("rect", "disk", "spot"):
+            kw["target"] = r.vec("target")
+            if _norm([a - b for a, b in zip(kw["position"], kw["target"])]) == 0:
+                r.fail("target", "a point different from the light's position", list(kw["target"]))
+        if kind == "rect":
+            kw["size"] = r.vec("size", n=2, positive=True)
+        elif kind in ("disk", "sphere"):
+            kw["radius"] = r.num("radius", lo=1e-6)
+        else:
+            kw["radius"] = r.num("radius", default=0.0, lo=0.0)
+        if kind == "spot":
+            kw["angle"] = r.num("angle", default=30.0, lo=1.0, hi=80.0)
+        if kind in ("spot", "point"):  # radius 0: a delta light, which has an intensity and no radiance
+            if kw["radius"] == 0 and r.has("radiance"):
+                r.fail("radiance", f"no radiance on a {kind} light of radius 0 (a delta light has no area): give "
+                       "intensity (W/sr) or power, or a radius > 0", kw["radiance"])
+            if kw["radius"] > 0 and r.has("intensity"):
+                r.fail("intensity", f"no intensity on a {kind} light of radius {kw['radius']:g} (an area light): "
+                       "give radiance or power, or radius = 0 for a delta light", kw["intensity"])
+    return LightSpec(**kw)
+
+
+def _shape(path: str, i: int, st, names: set, snames: set, base: Path) -> ShapeSpec:
+    if not isinstance(st, dict):
+        raise SceneError(f"{path}: shapes[{i}]: expected a table, got {st!r}")
+    r = _Reader(path, f"shapes[{i}]", st)
+    typ = r.str("type", choices=SHAPE_TYPES)
+    _kind_keys(r, typ, st, SHAPE_KEYS, "shape")
+    sname = r.str("name", default=f"{typ}{i}")
+    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", sname) or "__" in sname:
+        r.fail("name", "a name of letters, digits, '_' or '-' starting with a letter (no '__')", sname)
+    if sname in snames or sname in names:
+        r.fail("name", "a name not used by another shape or light", sname)
+    snames.add(sname)
+    alb = r.vec("albedo", default=(0.5, 0.5, 0.5))
+    if any(a < 0 or a > 1 for a in alb):
+        r.fail("albedo", "three numbers in [0, 1]", list(alb))
+    rot = rotations(r, st)
+    kw = dict(name=sname, type=typ, albedo=alb, translate=r.vec("translate", default=(0, 0, 0)),
+              rotate=tuple(tuple(float(x) for x in q) for q in rot),
+              scale=r.vec("scale", default=(1, 1, 1), positive=True),
+              two_sided=r.bool("two_sided", True))
+    if typ == "sphere":
+        kw["center"] = r.vec("center", default=(0, 0, 0))
+        kw["radius"] = r.num("radius", default=1.0, lo=1e-6)
+    elif typ == "cylinder":
+        kw["p0"], kw["p1"] = r.vec("p0", default=(0, 0, 0)), r.vec("p1", default=(0, 1, 0))
+        if kw["p0"] == kw["p1"]:
+            r.fail("p1", "a point different from p0 (the cylinder's axis runs from p0 to p1)", list(kw["p1"]))
+        kw["radius"] = r.num("radius", default=1.0, lo=1e-6)
+        kw["caps"] = r.bool("caps", True)
+    elif typ in ("ply", "obj"):
+        fn = r.str("filename")
+        p = (base / fn).resolve()
+        if not p.is_file():
+            r.fail("filename", f"an existing .{typ} file, relative to the scene file (looked for {p})", fn)
+        kw["filename"] = str(p)
+    if r.has("alpha_texture"):
+        kw["alpha_texture"] = _alpha_texture(r, base)
+        kw["alpha_cutoff"] = r.num("alpha_cutoff", default=0.5, lo=0.0, hi=1.0)
+    elif r.has("alpha_cutoff"):
+        r.fail("alpha_cutoff", "no alpha_cutoff without alpha_texture (the image whose alpha it tests)",
+               st["alpha_cutoff"])
+    return ShapeSpec(**kw)
+
+
+def _not_a_scene(path: str, data: dict):
+    """A gate file or a preset given where a scene is expected: say what it is and what to run."""
+    if "gate" in data and "camera" not in data:
+        raise SceneError(f"{path}: this is a gate file ([[gate]] tables), not a scene; run it with "
+                         f"`shadowlab gate {path}`, or give a scene (a built-in name or a scene .toml)")
+
+
+def parse(data: dict, path: str = "<scene>") -> SceneSpec:
+    """Validate a parsed TOML document and return a SceneSpec (raises SceneError)."""
+    _not_a_scene(path, data)
+    top = _Reader(path, "", data)
+    top.check_keys(TOP_KEYS, "a scene file (top level)")
+    name = _scene_name(top, data, path)
+    camera = _camera(path, data, top)
 
     lights_raw = data.get("lights")
     if not isinstance(lights_raw, list) or not lights_raw:
         top.fail("lights", "a non-empty array of [[lights]] tables", lights_raw)
-    lights, names = [], set()
-    for i, lt in enumerate(lights_raw):
-        if not isinstance(lt, dict):
-            top.fail(f"lights[{i}]", "a table", lt)
-        r = _Reader(path, f"lights[{i}]", lt)
-        kind = r.str("kind", choices=LIGHT_KINDS)
-        lname = r.str("name", default=f"L{i}")
-        if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", lname):
-            r.fail("name", "a name of letters, digits, '_' or '-' starting with a letter", lname)
-        if lname in names:
-            r.fail("name", "a name not used by another light", lname)
-        names.add(lname)
-        kw = dict(name=lname, kind=kind, color=r.vec("color", default=(1, 1, 1)),
-                  shadow_map=r.int("shadow_map", default=512, lo=8),
-                  depth_bits=r.int("depth_bits", default=32, choices=DEPTH_BITS),
-                  up=r.vec("up", default=(0, 1, 0)))
-        if any(x < 0 for x in kw["color"]):
-            r.fail("color", "non-negative numbers", list(kw["color"]))
-        for k in ("power", "radiance", "irradiance", "intensity"):
-            if r.has(k):
-                kw[k] = r.num(k, lo=0.0)
-        if not any(k in kw for k in ("power", "radiance", "irradiance", "intensity")):
-            r.fail("power", "a number (the light's power in watts; or radiance / irradiance / intensity)")
-        if r.has("near"):
-            kw["near"] = r.num("near", lo=1e-6)
-        if kind == "directional":
-            kw["direction"] = r.vec("direction")
-            if _norm(kw["direction"]) == 0:
-                r.fail("direction", "a non-zero vector", list(kw["direction"]))
-            kw["angular_diameter"] = r.num("angular_diameter", default=0.0, lo=0.0, hi=30.0)
-        else:
-            kw["position"] = r.vec("position")
-            if kind in ("rect", "disk", "spot"):
-                kw["target"] = r.vec("target")
-                if _norm([a - b for a, b in zip(kw["position"], kw["target"])]) == 0:
-                    r.fail("target", "a point different from the light's position", list(kw["target"]))
-            if kind == "rect":
-                kw["size"] = r.vec("size", n=2, positive=True)
-            elif kind in ("disk", "sphere"):
-                kw["radius"] = r.num("radius", lo=1e-6)
-            else:
-                kw["radius"] = r.num("radius", default=0.0, lo=0.0)
-            if kind == "spot":
-                kw["angle"] = r.num("angle", default=30.0, lo=1.0, hi=80.0)
-        lights.append(LightSpec(**kw))
+    names = set()
+    lights = [_light(path, i, lt, names) for i, lt in enumerate(lights_raw)]
 
     shapes_raw = data.get("shapes", [] if "sdf" in data else None)
     if not isinstance(shapes_raw, list) or not (shapes_raw or data.get("sdf")):
         top.fail("shapes", "a non-empty array of [[shapes]] tables (or [[sdf]] objects)", shapes_raw)
-    shapes, snames = [], set()
+    snames = set()
     base = Path(path).parent
-    for i, st in enumerate(shapes_raw):
-        if not isinstance(st, dict):
-            top.fail(f"shapes[{i}]", "a table", st)
-        r = _Reader(path, f"shapes[{i}]", st)
-        typ = r.str("type", choices=SHAPE_TYPES)
-        sname = r.str("name", default=f"{typ}{i}")
-        if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", sname) or "__" in sname:
-            r.fail("name", "a name of letters, digits, '_' or '-' starting with a letter (no '__')", sname)
-        if sname in snames or sname in names:
-            r.fail("name", "a name not used by another shape or light", sname)
-        snames.add(sname)
-        alb = r.vec("albedo", default=(0.5, 0.5, 0.5))
-        if any(a < 0 or a > 1 for a in alb):
-            r.fail("albedo", "three numbers in [0, 1]", list(alb))
-        rot = rotations(r, st)
-        kw = dict(name=sname, type=typ, albedo=alb, translate=r.vec("translate", default=(0, 0, 0)),
-                  rotate=tuple(tuple(float(x) for x in q) for q in rot),
-                  scale=r.vec("scale", default=(1, 1, 1), positive=True),
-                  two_sided=bool(st.get("two_sided", True)))
-        if typ == "sphere":
-            kw["center"] = r.vec("center", default=(0, 0, 0))
-            kw["radius"] = r.num("radius", default=1.0, lo=1e-6)
-        elif typ == "cylinder":
-            kw["p0"], kw["p1"] = r.vec("p0", default=(0, 0, 0)), r.vec("p1", default=(0, 1, 0))
-            kw["radius"] = r.num("radius", default=1.0, lo=1e-6)
-            kw["caps"] = bool(st.get("caps", True))
-        elif typ in ("ply", "obj"):
-            fn = r.str("filename")
-            p = (base / fn).resolve()
-            if not p.exists():
-                r.fail("filename", f"an existing .{typ} file (looked for {p})", fn)
-            kw["filename"] = str(p)
-        if r.has("alpha_texture"):
-            kw["alpha_texture"] = _alpha_texture(r, base)
-            kw["alpha_cutoff"] = r.num("alpha_cutoff", default=0.5, lo=0.0, hi=1.0)
-        elif r.has("alpha_cutoff"):
-            r.fail("alpha_cutoff", "no alpha_cutoff without alpha_texture (the image whose alpha it tests)",
-                   st["alpha_cutoff"])
-        allowed = {"name", "type", "albedo", "translate", "rotate", "scale", "two_sided", "center", "radius",
-                   "p0", "p1", "caps", "filename", "alpha_texture", "alpha_cutoff"}
-        for k in st:
-            if k not in allowed:
-                r.fail(k, f"no such key (allowed: {', '.join(sorted(allowed))})", None)
-        shapes.append(ShapeSpec(**kw))
+    shapes = [_shape(path, i, st, names, snames, base) for i, st in enumerate(shapes_raw)]
     sdf = ()
     if "sdf" in data:
         sdf = parse_sdf_tables(data["sdf"], path, snames | names)
@@ -350,10 +451,17 @@ def load_spec(path) -> SceneSpec:
     if not p.exists():
         raise SceneError(f"{p}: scene file not found; give a path to a .toml scene or the name of a "
                          "built-in scene (`shadowlab scenes` lists them)")
+    if p.is_dir():
+        inside = sorted(q.name for q in p.glob("*.toml"))[:5]
+        raise SceneError(f"{p}: is a directory, not a scene file; give a .toml scene file"
+                         + (f" such as {p / inside[0]} (it holds {', '.join(inside)})" if inside else "")
+                         + " or the name of a built-in scene (`shadowlab scenes` lists them)")
     try:
-        data = tomllib.loads(p.read_text())
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise SceneError(f"{p}: not valid TOML ({e}); fix the syntax at the position given") from e
+    except OSError as e:
+        raise SceneError(f"{p}: cannot read the scene file ({e.strerror or e}); check its permissions") from None
     return parse(data, str(p))
 
 
