@@ -20,7 +20,8 @@ import pytest
 from shadowlab.cli import main as cli_main
 from shadowlab.errors import InputError, SceneError
 from shadowlab.fit import preset as preset_mod
-from shadowlab.gate.gatefile import SEED_MAX, load_gate_file, parse_gate_file
+from shadowlab.gate.gatefile import load_gate_file, parse_gate_file
+from shadowlab.reference.truth import SEED_MAX
 from shadowlab.scene._reader import did_you_mean
 from shadowlab.scene.spec import SHADOW_MAP_MAX, builtin_names, load_spec, parse, resolve
 from shadowlab.techniques import base
@@ -227,8 +228,8 @@ def test_bad_scene_input_exits_2_naming_file_key_and_fix(case, tmp_path, monkeyp
         want = {"up_zero": [f"error: {f}: camera.up: expected a non-zero vector"],
                 "up_parallel": [f"error: {f}: camera.up: expected a vector not parallel"],
                 "shadow_map": [f"error: {f}: lights[0].shadow_map: expected an integer <= 16384"],
-                "seed": ["--seed", "greater than or equal to 0"],
-                "seed_big": ["--seed", f"less than or equal to {SEED_MAX}"]}[case]
+                "seed": ["--seed", f"-1 is out of range; expected a seed in [0, {SEED_MAX}]"],
+                "seed_big": ["--seed", f"{SEED_MAX + 1} is out of range; expected a seed in [0, {SEED_MAX}]"]}[case]
         args += {"seed": ["--seed", "-1"], "seed_big": ["--seed", str(SEED_MAX + 1)]}.get(case, [])
     rc = cli_main(["reference", str(f)] + args)
     captured = capsys.readouterr()
