@@ -73,7 +73,8 @@ def _leftovers(base: Path) -> list:
 
 
 def _child_env(store_dir):
-    env = dict(os.environ, SHADOWLAB_REFERENCES=str(store_dir), PYTHONPATH=str(ROOT))
+    env = dict(os.environ, SHADOWLAB_REFERENCES=str(store_dir),
+               PYTHONPATH=os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p))
     env.pop(cli.DEBUG_ENV, None)
     return env
 

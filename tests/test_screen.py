@@ -46,11 +46,13 @@ def test_depth_rejection_keeps_a_depth_step_sharp(mitsuba_backend):
     scr, z = _step_screen()
     val = mi.Float(np.where(z > 4, 1.0, 0.0).ravel().astype(np.float32))
     sharp = scr.to_image(scr.blur(val, 4, "x", depth_sigma=0.05))
-    assert np.array_equal(sharp, np.where(z > 4, 1.0, 0.0))        # no bleeding across the step
+    far = z > 4
+    assert np.all(sharp[~far] == 0.0)                               # no bleeding across the step
+    assert np.allclose(sharp[far], 1.0, atol=1e-6)                  # (weights renormalised: last bits)
     soft = scr.to_image(scr.blur(val, 4, "x"))                      # without rejection it bleeds
     assert 0 < soft[:, 15].min() and soft[:, 16].max() < 1
     # along y nothing changes: the step runs down the columns
-    assert np.array_equal(scr.to_image(scr.blur(val, 4, "y")), np.where(z > 4, 1.0, 0.0))
+    assert np.allclose(scr.to_image(scr.blur(val, 4, "y")), np.where(far, 1.0, 0.0), atol=1e-6)
     # a separable x then y pass of a single bright pixel stays on its side of the step
     dot = np.zeros((24, 32))
     dot[12, 14] = 1.0

@@ -112,7 +112,7 @@ def ref(made, tmp_path):
 def _writer(scene, base, point="none", action="none", mode="exchange", force=True, sync="", wait=True, src=None):
     args = [sys.executable, "-c", WRITER, str(scene), str(src or base), str(base), point, action, mode,
             "1" if force else "0", str(sync)]
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)}
     p = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     if wait:
         p.communicate(timeout=120)
