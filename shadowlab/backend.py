@@ -103,7 +103,6 @@ def init(variant: str | None = None, threads: int | None = None, check: bool = T
                 older = [p for d in _LIB_DIRS for p in glob.glob(os.path.join(d, "libLLVM*.so*"))]
                 have = f" (found only {', '.join(sorted(set(older)))})" if older else ""
                 raise EnvironmentProblem(f"no libLLVM >= {MIN_LLVM} found for Dr.Jit's LLVM backend{have}; {FIX}")
-            os.environ["DRJIT_LIBLLVM_PATH"] = lib
     if check:
         cache = _cache_file(variant, lib)
         if not cache.exists():

@@ -389,6 +389,10 @@ def _exit_code(e: BaseException) -> int:
     if isinstance(e, OSError) and _environment_oserror(e) is not None:
         typer.echo(f"error: {_environment_oserror(e)}", err=True)
         return 3
+    if isinstance(e, OSError) and e.errno in (errno.ENAMETOOLONG, errno.ELOOP, errno.ENOTDIR, errno.EISDIR):
+        typer.echo(f"error: bad path {e.filename or ''}: {e.strerror}; give a shorter path or one whose folders "
+                   "are directories", err=True)
+        return 2
     return _internal_error(e)  # a bug: one line, not a traceback
 
 

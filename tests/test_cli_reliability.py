@@ -227,6 +227,13 @@ def test_a_gate_never_passes_on_an_empty_or_too_small_pixel_set():
         assert not r.passed and not r.check("pixels").passed, r.lines()
         assert f"need >= {MIN_GATE_PIXELS}" in r.check("pixels").text
         assert r.check("budget.rmse").passed  # the other checks alone would have been green
+    # the light inside a closed box as Mitsuba sees it: unshadowed light U > 0 on every surface, but
+    # the box blocks it all (truth V = 0 everywhere): a technique that is just as black must not pass
+    boxed = _truth(np.zeros(hw), np.ones(hw + (3,)), np.ones(hw, bool))
+    for target in ("shaded", "visibility"):
+        r = check(boxed.shaded if target == "shaded" else np.zeros(hw), boxed, {"budget": {"rmse": 1.0}},
+                  target=target, name="boxed")
+        assert not r.passed and not r.check("pixels").passed, r.lines()
     # the camera looking at nothing: no pixel hits a surface
     blind = _truth(V, np.ones(hw + (3,)), np.zeros(hw, bool))
     assert not check(blind.shaded, blind, {"budget": {"rmse": 1.0}}).passed

@@ -131,3 +131,20 @@ def test_supersampled_grid(scene):
     # averaging 2×2 blocks of the grid gives the G-buffer's pixel values
     zd = np.where(fr.gbuffer.mask, fr.gbuffer.z_depth, 0).mean(2)
     assert np.allclose(img.reshape(48, 2, 64, 2).mean((1, 3)), zd, atol=1e-4)
+
+
+def test_new_blur_settings_reuse_the_compiled_kernel(mitsuba_backend):
+    """sigma, depth_sigma and normal_power enter the pass opaquely: new values launch the kernels
+    the first values compiled (a screen-space technique's fit varies them)."""
+    import drjit as dr
+    import mitsuba as mi
+    from shadowlab.fit.objective import KernelCounter
+    scr, z = _step_screen()
+    val = mi.Float(np.where(z > 4, 1.0, 0.0).ravel().astype(np.float32))
+    run = lambda s, d, p: dr.eval(scr.blur(val, 3, "x", sigma=s, depth_sigma=d, normal_power=p))  # noqa: E731
+    with KernelCounter() as kc:
+        run(1.0, 0.05, 2.0)
+        kc.take()
+        run(1.7, 0.2, 5.0)
+        second = kc.take()
+    assert second["launched"] >= 1 and second["new"] == 0, second

@@ -274,6 +274,9 @@ def test_a_truth_exr_missing_a_channel_or_of_the_wrong_size_exits_2(ref, damage,
     (lambda m: m["samples"].update(mean_rays_per_pixel={"key": "many"}), "samples.mean_rays_per_pixel"),
     (lambda m: m["samples"].pop("shadow_rays"), "samples.shadow_rays"),
     (lambda m: m.update(truth_sha256=42), "truth_sha256"),
+    (lambda m: m.update(target_missed={"pixels": 3, "worst_se": "x"}), "target_missed"),
+    (lambda m: m.setdefault("stats", {}).update(strata="x"), "stats.strata"),
+    (lambda m: m["samples"].update(max_rounds="64"), "samples.max_rounds"),
 ])
 def test_meta_json_keys_missing_or_of_the_wrong_type_exit_2(ref, edit, key):
     scene, base, d = ref
@@ -321,7 +324,7 @@ def test_a_read_only_store_after_a_full_render_exits_2_and_keeps_the_reference(r
 
     monkeypatch.setattr(pipeline, "render_truth", render_then_lock_store)
     rc, err = _cli(base, "reference", str(scene), "--force", "--max-rounds", "4", "--spp", "0")
-    assert rendered and rc == 2 and "cannot write to the reference store" in err and "Read-only" in err, err
+    assert rendered and rc == 3 and "cannot write to the reference store" in err and "Read-only" in err, err
     assert "Traceback" not in err and _digest(d) == old and _leftovers(d) == []
 
 

@@ -164,6 +164,7 @@ def test_stats_tables_for_the_report():
     assert "### hard: stats per light" in md and "### hard: stats per map" in md and "| b | 1 | 2 | 9 |" in md
 
 
-def test_base_module_needs_no_variant():
-    """``Technique.resolve`` recognises Dr.Jit inputs without importing drjit at module level."""
-    assert not base._is_drjit(1.0) and not base._is_drjit(np.float32(1.0))
+def test_numbers_are_not_taken_for_drjit_inputs():
+    """``Technique.resolve`` keeps only Dr.Jit arrays as arrays: a numpy scalar is parsed as a number."""
+    v = get("pcss").resolve({"light_scale": np.float32(0.5)})["light_scale"]
+    assert type(v) is float and v == 0.5

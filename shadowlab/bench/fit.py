@@ -29,7 +29,6 @@ from .. import backend
 from ..fit import run as R
 from ..fit.objective import Objective
 from ..io.jsonio import write_json_atomic
-from ..techniques.pcss import scene_light_size
 from .timing import timed
 
 SCENES = ("parallel_planes", "analytic_sphere", "contact", "cornell", "two_lights")

@@ -259,13 +259,13 @@ def check(candidate, reference, thresholds, *, target: str = "shaded", light: st
                 else None, "resolution": [int(hw[1]), int(hw[0])]}
 
     covered = tgt.valid.copy()
-    if tgt.lights:  # a stored truth: only pixels some light reaches measure a shadow
-        covered &= np.logical_or.reduce([np.asarray(lit, bool) for _, lit in tgt.lights.values()])
+    if tgt.lights:  # a stored truth: only pixels some light reaches (U > 0 and, in the truth, V > 0) count
+        covered &= np.logical_or.reduce([np.asarray(lit, bool) & (np.asarray(V) > 0) for V, lit in tgt.lights.values()])
     n_pix = res.info["compared_pixels"] = int(covered.sum())
     if n_pix < MIN_GATE_PIXELS:
         res.checks.append(Check(
             "pixels", "coverage", float(n_pix), float(MIN_GATE_PIXELS), ">=", False,
-            f"{n_pix} pixel(s) to compare (seen by the camera and reached by a light), need >= {MIN_GATE_PIXELS}: "
+            f"{n_pix} pixel(s) to compare (seen by the camera and lit by a light in the truth), need >= {MIN_GATE_PIXELS}: "
             "nothing to measure, so the gate cannot pass; point the camera at the lit scene and check that no "
             "light is enclosed"))
     st = th.statistical

@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ReferenceError_, ShadowlabError
+from ..errors import EnvironmentProblem, ReferenceError_, ShadowlabError
 from ..io.exr import read_exr, write_exr
 from ..io.jsonio import read_json, write_json_atomic
 from ..scene.spec import load_spec, resolve
@@ -121,8 +121,9 @@ def _holder_text(fd: int) -> str:
     return "a process that has not yet written its name into the lock"
 
 
-def _unwritable(where: Path, exc: OSError) -> ReferenceError_:
-    return ReferenceError_(f"cannot write to the reference store at {where}: {exc.strerror or exc}; make it "
+def _unwritable(where: Path, exc: OSError) -> EnvironmentProblem:
+    """A store the machine will not let us write (permissions, read-only file system): exit 3."""
+    return EnvironmentProblem(f"cannot write to the reference store at {where}: {exc.strerror or exc}; make it "
                            f"writable (e.g. `chmod -R u+w {where}`) or point {ROOT_ENV} at a writable directory")
 
 
@@ -206,9 +207,11 @@ def recover(dest: Path, wait_s: float = 5.0) -> str | None:
         try:
             with locked(dest, role="recover"):
                 return _recover_locked(dest)
+        except EnvironmentProblem:
+            return None  # a read-only store: nothing can be cleaned; reading still works
         except ReferenceError_ as e:
             if "being written" not in str(e):
-                return None  # a read-only store: nothing can be cleaned; reading still works
+                return None
             if dest.exists() or time.monotonic() > deadline:
                 return None  # a live writer owns the leftovers
             time.sleep(0.05)
@@ -375,11 +378,27 @@ def check_meta(meta, where: Path, cmd: str) -> None:
         raise bad(CHECKSUM_KEY, "a hex SHA-256")
     if "stats" in m and not isinstance(m["stats"], dict):
         raise bad("stats", "an object")
+    tm = m.get("target_missed")
+    if tm is not None and not (isinstance(tm, dict) and _is(tm.get("pixels"), int) and _is(tm.get("worst_se"), _NUM)
+                               and isinstance(tm.get("lights", {}), dict)):
+        raise bad("target_missed", "an object {pixels: integer, worst_se: number, lights: {...}}")
+    st = m.get("stats") or {}
+    m, prefix = st, "stats."
+    for k in ("strata", "max_rounds", "seed", "spp_mitsuba"):   # read back by gates' truth candidates
+        if k in st and not _is(st[k], int):
+            raise bad(k, "an integer")
+    for k in ("target_se",):
+        if k in st and not _is(st[k], _NUM):
+            raise bad(k, "a number")
+    m, prefix = meta, ""
     if not isinstance(m.get("samples"), dict):
         raise bad("samples", "an object")
     m, prefix = meta["samples"], "samples."
     if not _is(m.get("shadow_rays"), int):
         raise bad("shadow_rays", "an integer")
+    for k, want in (("target_se", _NUM), ("max_rounds", int), ("mitsuba_spp", int)):
+        if k in m and not _is(m[k], want):
+            raise bad(k, "a number" if want is _NUM else "an integer")
     rpp = m.get("mean_rays_per_pixel")
     if not (isinstance(rpp, dict) and rpp and all(_is(v, _NUM) for v in rpp.values())):
         raise bad("mean_rays_per_pixel", "an object {light: number}")
@@ -481,7 +500,8 @@ def _scene_file(scene: str, meta: dict) -> Path | None:
 def _status(d: Path, scene: str, meta) -> list[str]:
     """Problems of one listed reference (empty: fine)."""
     res = tuple(int(x) for x in d.name.split("x"))
-    cmd = reference_command(scene, res)
+    src = meta.get("scene_file") if isinstance(meta, dict) else None   # a scene known only by its path
+    cmd = reference_command(shlex.quote(src) if isinstance(src, str) and src else scene, res)
     problem = _problem(d)
     if problem:
         return [f"incomplete: {problem}; re-render with `{cmd} --force`"]

@@ -28,7 +28,6 @@ True
 
 from __future__ import annotations
 
-import math
 
 import drjit as dr
 import mitsuba as mi
@@ -130,18 +129,22 @@ class Screen:
         if r == 0:
             return type(v)(v)
         sg = float(sigma) if sigma is not None else max(r / 2.0, 1e-6)
+        # the settings enter the kernel opaquely: a new sigma or tolerance reuses the compiled kernel
+        inv_s2 = dr.opaque(mi.Float, 1.0 / (sg * sg))
+        inv_dz = dr.opaque(mi.Float, 1.0 / float(depth_sigma)) if depth_sigma is not None else None
+        npow = dr.opaque(mi.Float, float(normal_power)) if normal_power is not None else None
         z0, n0 = self.depth, self.normal
         acc, wsum = dr.zeros(type(v), dr.width(v)), dr.zeros(type(z0), dr.width(z0))
         for k in range(-r, r + 1):  # a loop over kernel taps (a fixed, small kernel), not over pixels
             idx = self.index(self.x + (k if axis == "x" else 0), self.y + (k if axis == "y" else 0))
-            w = dr.select(dr.gather(type(self.valid), self.valid, idx), math.exp(-0.5 * (k / sg) ** 2), 0.0)
-            if depth_sigma is not None:
+            w = dr.select(dr.gather(type(self.valid), self.valid, idx), dr.exp(-0.5 * (k * k) * inv_s2), 0.0)
+            if inv_dz is not None:
                 zk = dr.gather(type(z0), z0, idx)
-                t = (zk - z0) / (float(depth_sigma) * dr.maximum(z0, 1e-12))
+                t = (zk - z0) * inv_dz / dr.maximum(z0, 1e-12)
                 w = w * dr.exp(-0.5 * t * t)
-            if normal_power is not None:
+            if npow is not None:
                 nk = dr.gather(type(n0), n0, idx)
-                w = w * dr.power(dr.maximum(dr.dot(n0, nk), 0.0), float(normal_power))
+                w = w * dr.power(dr.maximum(dr.dot(n0, nk), 0.0), npow)
             acc += dr.gather(type(v), v, idx) * w
             wsum += w
         keep = self.valid & (wsum > 0)
@@ -154,11 +157,14 @@ class Screen:
         if isinstance(f, str) and f in self._tex:
             return self._tex[f]
         v = self.field(f)
-        a = np.asarray(v.numpy(), np.float32)
-        a = a.T if a.ndim == 2 else a[:, None]                 # (N, C)
-        img = np.empty((self.height, self.width, a.shape[1]), np.float32)
-        img[self.y.numpy(), self.x.numpy()] = a
-        tex = mi.Texture2f(mi.TensorXf(img), filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
+        chans = [v[c] for c in range(len(v))] if dr.is_array_v(v) and dr.size_v(v) > 1 else [v]
+        C, N = len(chans), self.width * self.height
+        buf = dr.zeros(mi.Float, N * C)
+        texel = mi.UInt32(self.y * self.width + self.x) * C
+        for c, vc in enumerate(chans):                         # channels, not pixels
+            dr.scatter(buf, mi.Float(vc), texel + c)
+        tex = mi.Texture2f(mi.TensorXf(buf, (self.height, self.width, C)), filter_mode=dr.FilterMode.Linear,
+                           wrap_mode=dr.WrapMode.Clamp)
         if isinstance(f, str):
             self._tex[f] = tex
         return tex

@@ -217,7 +217,7 @@ class Technique:
         arrays = {}
         for k, v in (overrides or {}).items():
             p = self.param(k)
-            if _is_drjit(v):
+            if isinstance(v, dr.ArrayBase):
                 if not p.differentiable:
                     diff = ", ".join(q.name for q in self.params if q.differentiable) or "none"
                     raise InputError(f"{self.name}.{k}: only differentiable parameters ({diff}) may be Dr.Jit "
@@ -294,10 +294,6 @@ class Technique:
         stats["lights"] = lights
         return ShadowResult(visibility=vis, aovs=aovs, stats=stats)
 
-
-def _is_drjit(v) -> bool:
-    mod = type(v).__module__ or ""
-    return mod.startswith("drjit") or mod.startswith("mitsuba")
 
 
 _REGISTRY: dict = {}

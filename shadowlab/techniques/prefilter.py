@@ -74,7 +74,7 @@ import mitsuba as mi
 
 from ..errors import InputError
 from .base import LightResult, Param, opaque_scalar
-from .shadow_map import BIAS_PARAMS, ShadowMapTechnique, depth_test, finish, map_entry, map_stats, receiver, view_for
+from .shadow_map import BIAS_PARAMS, ShadowMapTechnique, depth_test, map_entry, map_stats, receiver, view_for
 
 SOURCE = "[Buljan 2020, §3.3]"
 KERNEL_MAX = 31
@@ -147,7 +147,7 @@ def normalised_depth(view):
 def prepare_receiver(frame, view, bias) -> dict:
     """``shadow_map.receiver`` plus ``zn`` (the receiver's biased depth z̃ in the zn domain).
     Points that are not active (no surface, outside the light camera) get harmless values
-    (u = v = ½, zn = 0): they are replaced by 1 in :func:`finish`, and finite values keep
+    (u = v = ½, zn = 0): the base class sets visibility 1 outside ``active``, and finite values keep
     reverse-mode gradients free of NaN (0 · ∞)."""
     rec = receiver(frame, view, bias)
     n, f = depth_range(view)

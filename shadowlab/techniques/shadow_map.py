@@ -209,11 +209,6 @@ def depth_test(view, rec: dict, ix, iy, bias: Bias):
     return dr.select(empty | (Db >= rec["dt"]), 1.0, 0.0)
 
 
-def finish(vis, rec: dict):
-    """Visibility 1 outside the light camera and where there is no surface."""
-    return dr.select(rec["active"], vis, 1.0)
-
-
 class ShadowMapTechnique(Technique):
     """A technique that samples each light's shadow map. Its per-light part builds the
     light's map and receivers and calls :meth:`filter` (the one thing ``hard`` and ``pcf``
