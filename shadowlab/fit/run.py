@@ -298,7 +298,7 @@ def execute(p: Plan, frame, truth, budget: Budget) -> dict:
             s.notes.append(f"the search's best point ({best_txt}) lowered the {p.loss} loss but made compare's "
                            f"{what}: kept the start")
             fitted = {d.name: _clean(p.start[d.name]) for d in p.dims}
-            best_obj = obj.value(dict(p.start))
+            best_obj = obj_before                # the start's objective, evaluated first by the search
             res_a, m_a, pl_a, img_a = res_b, m_b, pl_b, img_b
     defaults = p.tech.defaults()
     nondefault = {k: _clean(v) for k, v in p.fixed.items() if v != defaults.get(k)}
