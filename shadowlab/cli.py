@@ -185,8 +185,10 @@ def compare(scene: str = typer.Argument(..., help="Built-in scene name or path t
 @app.command()
 def demo(out: str = typer.Option("reports/demo", "--out", "-o"), force: bool = ForceOpt,
          variant: Optional[str] = VariantOpt):
-    """Compare every registered technique on the built-in `contact` scene and print the table."""
-    _compare("contact", base.names(), [], out, None, variant, force=force)
+    """Compare every registered technique that renders the built-in `contact` scene and print the table."""
+    spec = load_spec(resolve("contact"))
+    _compare("contact", [n for n in base.names() if base.get(n).unsupported(spec) is None], [], out, None, variant,
+             force=force)
 
 
 @app.command()

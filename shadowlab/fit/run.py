@@ -107,7 +107,13 @@ class Budget:
         return self
 
 
-def default_params(tech) -> tuple:
+def default_params(tech, values: dict | None = None) -> tuple:
+    """The parameters fitted when ``--params`` is not given: :data:`DEFAULT_PARAMS`, else the
+    differentiable ones; a technique that composes another (``csm`` and its filter) says which
+    through ``fit_params(values, default_params)`` (its own continuous parameters, searched
+    without gradients, and its filter's defaults)."""
+    if values is not None and hasattr(tech, "fit_params"):
+        return tuple(tech.fit_params(values, default_params))
     if tech.name in DEFAULT_PARAMS:
         return DEFAULT_PARAMS[tech.name]
     return tuple(p.name for p in tech.params if p.differentiable)
@@ -214,7 +220,7 @@ def plan(tech_name: str, frame, *, params=None, method="auto", loss="rmse_penumb
     check_loss(loss)
     if method not in S.METHODS:
         raise InputError(f"--method {method!r}: expected one of {', '.join(S.METHODS)}")
-    names = list(params) if params else list(default_params(tech))
+    names = list(params) if params else list(default_params(tech, tech.resolve(sets or {})))
     if not names:
         raise InputError(f"technique {tech.name!r} has no differentiable parameter to fit by default; name the "
                          f"parameters with --params (its parameters: {', '.join(p.name for p in tech.params)})")

@@ -231,6 +231,12 @@ class Technique:
         values.update(arrays)
         return values
 
+    def unsupported(self, spec) -> str | None:
+        """Why the technique cannot render scenes like ``spec`` (a SceneSpec), e.g. a light kind it
+        does not handle; None (the default) when it can. ``demo`` and the bench skip such pairs;
+        :meth:`render` refuses them with that text (InputError)."""
+        return None
+
     # -- the family's part ---------------------------------------------------------------------
     def prepare(self, frame, values: dict, ctx: RenderContext) -> None:
         """Once per render, before the lights: check the frame, build what every light shares
@@ -259,6 +265,9 @@ class Technique:
         ``stats[stat][light]`` (plus ``["all"]``, pooled over lights, for a :class:`Pooled`
         mean); the family's global stats (:meth:`summarise`) sit at the top level."""
         values = self.resolve(params)
+        why = self.unsupported(frame.scene.spec)
+        if why:
+            raise InputError(why)
         ctx = RenderContext(self, values)
         self.prepare(frame, values, ctx)
         gb = frame.gbuffer

@@ -396,7 +396,9 @@ class PCSS(ShadowMapTechnique):
         raise NotImplementedError("pcss renders through PCSS.render_light (it needs the frame's normals)")
 
     def render_light(self, frame, light, values, ctx):
-        view = view_for(frame, light.name, values)
+        return self.evaluate(frame, light, view_for(frame, light.name, values), values, ctx)
+
+    def evaluate(self, frame, light, view, values, ctx):
         rec = receiver(frame, view, ctx.bias)
         w_light = self.light_size(light, values)
         v, extra = self.pcss(frame, view, rec, ctx.bias, values, w_light)

@@ -380,8 +380,10 @@ class PrefilteredTechnique(ShadowMapTechnique):
         return bias_values(values)
 
     def render_light(self, frame, light, values, ctx):
+        return self.evaluate(frame, light, view_for(frame, light.name, values), values, ctx)
+
+    def evaluate(self, frame, light, view, values, ctx):
         n = int(values.get("kernel", 1))
-        view = view_for(frame, light.name, values)
         rec = prepare_receiver(frame, view, ctx.bias)
         fp = footprint(view, rec, n)
         v, extra_aovs, extra_stats = self.shade(view, rec, fp, ctx.bias, values)

@@ -210,9 +210,9 @@ def depth_test(view, rec: dict, ix, iy, bias: Bias):
 
 
 class ShadowMapTechnique(Technique):
-    """A technique that samples each light's shadow map. Its per-light part builds the
-    light's map and receivers and calls :meth:`filter` (the one thing ``hard`` and ``pcf``
-    implement); ``texel``, ``receiver_bias`` and ``depth_bias`` AOVs and the map's stats
+    """A technique that samples each light's shadow map. Its per-light part chooses the
+    light's map (:meth:`view`) and :meth:`evaluate` s it: builds the receivers and calls
+    :meth:`filter` (the one thing ``hard`` and ``pcf`` implement); ``texel``, ``receiver_bias`` and ``depth_bias`` AOVs and the map's stats
     (``maps``: resolution, depth bits, faces, texels, near, far) come with it."""
 
     source = "[Buljan 2020]"
@@ -237,7 +237,12 @@ class ShadowMapTechnique(Technique):
         return view_for(frame, light.name, values)
 
     def render_light(self, frame, light, values, ctx):
-        view = self.view(frame, light, values, ctx)
+        return self.evaluate(frame, light, self.view(frame, light, values, ctx), values, ctx)
+
+    def evaluate(self, frame, light, view, values, ctx) -> LightResult:
+        """Visibility, AOVs and stats of ``light`` at ``frame``'s G-buffer points from the given
+        map ``view`` (what :meth:`render_light` does after choosing the view). ``csm`` calls it
+        once per cascade, with the cascade's map and the points that cascade selects."""
         rec = receiver(frame, view, ctx.bias)
         v = self.filter(view, rec, ctx.bias, values)
         _, _, b = stored_depth(view, rec["face"], texel_index(rec["u"]), texel_index(rec["v"]), ctx.bias)
