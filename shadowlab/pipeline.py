@@ -23,6 +23,7 @@ from .reference.truth import SEED_MAX, render_truth, target_missed
 from .render.frame import make_frame
 from .render.shading import compose
 from .report import build
+from .report.images import cascade_colours
 from .report.outdir import claim_dir
 from .scene import load
 from .scene.spec import builtin_dir
@@ -162,7 +163,13 @@ def technique_metrics(frame, truth, result) -> tuple[dict, dict, dict]:
     shaded = compose(frame, result.visibility)
     m = compare_shaded(shaded, truth.shaded, penumbra=pen, valid=mask)
     m.update(pooled)
-    return m, per_light, {"shaded": shaded, "vis": vis_imgs}
+    imgs = {"shaded": shaded, "vis": vis_imgs}
+    cascades = {l.name: cascade_colours(result.aovs[f"{l.name}.cascade"], result.aovs.get(f"{l.name}.blend_weight"),
+                                        lights[l.name][0]) / 255.0
+                for l in frame.lights if f"{l.name}.cascade" in result.aovs}
+    if cascades:                              # csm's cascade AOV, coloured as [Buljan 2020, Slika 4.3/4.5]
+        imgs["cascade"] = cascades
+    return m, per_light, imgs
 
 
 def compare(scene: str, techniques: list[str], sets: list[str] | None = None, out: Path | None = None,

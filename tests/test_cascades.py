@@ -317,3 +317,38 @@ def test_fit_searches_the_cascade_parameters_and_the_filters(outdoor):
     dims = {d.name: d for d in p.dims}
     assert (dims["split_lambda"].lo, dims["split_lambda"].hi) == (0.2, 0.8)
     assert dims["split_lambda"].method != "adam" and dims["blend"].method != "adam"
+
+
+def test_the_report_colours_the_cascades(outdoor, tmp_path):
+    """compare's images carry the cascade AOV coloured red, green, blue (Slika 4.3/4.5), and the
+    report shows it beside the technique's visibility."""
+    from types import SimpleNamespace
+
+    from test_report import make_run, parse_png
+
+    from shadowlab.pipeline import technique_metrics
+    from shadowlab.report import build
+    _, frame = outdoor
+    r = base.get("csm").render(frame, {"cascades": 3, "blend": 0.0, "filter": "hard"})
+    H, W = frame.gbuffer.mask.shape[:2]
+    mask = frame.gbuffer.mask[..., 0]
+    truth = SimpleNamespace(mask=mask, shaded=np.zeros((H, W, 3)), lights={"sun": SimpleNamespace(V=np.ones((H, W)))})
+    _, _, imgs = technique_metrics(frame, truth, r)
+    col = imgs["cascade"]["sun"]
+    sel = r.aovs["sun.cascade"]
+    vis = frame.image(r.visibility["sun"])
+    for i, rgb in enumerate(([1, 0, 0], [0, 1, 0], [0, 0, 1])):
+        m = (sel == i) & mask & (vis == 1.0)
+        assert m.sum() > 0 and np.allclose(col[m], np.array(rgb) * 1.0, atol=1 / 255)
+    run = make_run(names=("pcf",))
+    N = run["resolution"][0]
+    cas = np.zeros((N, N, 3))
+    cas[:, : N // 2, 0] = 1.0
+    cas[:, N // 2:, 2] = 1.0
+    run["images"]["techniques"]["pcf"]["cascade"] = {"key": cas}
+    index = build(tmp_path / "rep", run)
+    html = index.read_text()
+    pngs = [p for p in (tmp_path / "rep" / "img").iterdir() if "cascade" in p.name]
+    assert len(pngs) == 1 and pngs[0].name in html and "cascades" in html
+    px = parse_png(pngs[0].read_bytes())
+    assert px[0, 0].tolist() == [255, 0, 0] and px[0, -1].tolist() == [0, 0, 255]

@@ -203,7 +203,11 @@ def validate(run: Mapping, need_images: bool = True) -> dict:
         if extra:
             raise InputError(f"{where}.vis.{extra[0]}: {extra[0]!r} is not in run.lights {list(lights)}")
         vis = {ln: _image(_get(vis_d, ln, f"{where}.vis"), f"{where}.vis.{ln}", hw, (0, 1, 3)) for ln in lights}
-        return {"shaded": shaded, "vis": vis}
+        out = {"shaded": shaded, "vis": vis}
+        if "cascade" in d:                  # optional: a cascade-index AOV coloured by images.cascade_colours
+            cas = _mapping(d["cascade"], f"{where}.cascade")
+            out["cascade"] = {ln: _image(cas[ln], f"{where}.cascade.{ln}", hw, (3,)) for ln in lights if ln in cas}
+        return out
 
     out = {"truth": frame(_get(imgs, "truth", "run.images"), "run.images.truth")}
     mts = imgs.get("mitsuba")
@@ -521,6 +525,12 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
                 f"<td>{_img_tag(truth_vis[ln], f'truth visibility {ln}')}</td>"
                 f"<td>{_img_tag(ef, f'signed error {name} {ln}')}{_legend(vis_scale[ln])}</td></tr>"
             )
+            if ln in ti.get("cascade", {}):
+                cf = put(f"{tag}_cascade_{j}_{_slug(ln)}.png", _im.encode_png(
+                    np.round(np.clip(ti["cascade"][ln], 0, 1) * 255).astype(np.uint8)))
+                p.append(f'<tr><th class="row"><b>{_e(ln)}</b> cascades<br>red, green, blue, … = cascade 0, 1, 2, …'
+                         f" (blended in the bands, × visibility)</th><td>{_img_tag(cf, f'{name} cascades {ln}')}"
+                         "</td><td></td><td></td></tr>")
         sf = put(f"{tag}_shaded.png", _im.shaded_png(ti["shaded"], exposure))
         sef = put(f"{tag}_shaded_err.png", _im.encode_png(_im.signed_error_heatmap(shaded_err[name], shaded_scale)))
         p.append(
@@ -584,7 +594,8 @@ def build(out_dir, run: Mapping, *, force: bool = False, protected=(), kind: str
 
     ``run`` = {"scene", "resolution": [W, H], "reference": {"spp", "max_std_error", ...},
     "lights": [names], "images": {"truth": {"shaded": H×W×3, "vis": {light: H×W}},
-    "mitsuba": H×W×3 (optional), "techniques": {name: {"shaded", "vis"}}},
+    "mitsuba": H×W×3 (optional), "techniques": {name: {"shaded", "vis", optional "cascade": {light:
+    H×W×3 colours in [0, 1] of a cascade-index AOV, ``images.cascade_colours``}}}},
     "techniques": {name: {"params", "time_s", "metrics", "per_light"}}, ...extra JSON keys}.
     Bad input raises ``InputError`` naming the key, before anything is written.
 

@@ -8,6 +8,10 @@ Conventions
 - Visibility PNGs map visibility v ∈ [0, 1] linearly to grey level round(255 v) (no sRGB curve:
   the grey level reads as the value).
 - Shaded PNGs use one exposure per report, from ``common_exposure(truth)``, then the sRGB OETF.
+- Cascade images (``csm``'s ``cascade`` AOV): cascade 0, 1, 2 red, green, blue as [Buljan 2020,
+  Slika 4.3/4.5], then yellow, magenta, cyan, orange, violet; a blend band mixes the two cascades'
+  colours by the blend weight; points of no cascade are grey; optionally darkened by the
+  visibility, as Code A.14's visualisation (colour × shadow factor).
 
 >>> import numpy as np
 >>> signed_error_heatmap(np.array([[-1.0, 0.0, 1.0]]), scale=1.0)[0].tolist()
@@ -31,6 +35,9 @@ __all__ = [
     "visibility_png",
     "common_exposure",
     "shaded_png",
+    "CASCADE_COLOURS",
+    "cascade_colours",
+    "cascade_png",
 ]
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries, linear
@@ -151,3 +158,40 @@ def shaded_png(img, exposure: float) -> bytes:
     b'\\x89PNG'
     """
     return encode_png(to_srgb8(img, exposure))
+
+
+#: colours of cascades 0 … 7 (linear [0, 1]): red, green, blue as Slika 4.3/4.5, then more
+CASCADE_COLOURS = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 0.5, 0],
+                            [0.5, 0, 1]], np.float64)
+
+
+def cascade_colours(index, weight=None, visibility=None) -> np.ndarray:
+    """H×W×3 uint8 image of a cascade index AOV (−1 = none, grey); ``weight``: the blend weight
+    toward cascade index + 1; ``visibility``: multiplies the colour (Code A.14's visualisation).
+
+    >>> cascade_colours(np.array([[0, 1, 2, -1]]))[0].tolist()
+    [[255, 0, 0], [0, 255, 0], [0, 0, 255], [128, 128, 128]]
+    >>> cascade_colours(np.array([[0.0]]), np.array([[0.5]]))[0].tolist()
+    [[128, 128, 0]]
+    """
+    idx = np.rint(np.asarray(index, np.float64)).astype(np.int64)
+    if idx.ndim == 3 and idx.shape[2] == 1:
+        idx = idx[:, :, 0]
+    k = len(CASCADE_COLOURS)
+    a = CASCADE_COLOURS[np.clip(idx, 0, k - 1)]
+    if weight is not None:
+        w = np.clip(np.asarray(weight, np.float64).reshape(idx.shape), 0.0, 1.0)[..., None]
+        a = (1.0 - w) * a + w * CASCADE_COLOURS[np.clip(idx + 1, 0, k - 1)]
+    if visibility is not None:
+        a = a * np.clip(np.asarray(visibility, np.float64).reshape(idx.shape), 0.0, 1.0)[..., None]
+    a = np.where((idx < 0)[..., None], _NAN_GREY / 255.0, a)
+    return np.round(a * 255.0).astype(np.uint8)
+
+
+def cascade_png(index, weight=None, visibility=None) -> bytes:
+    """PNG bytes of :func:`cascade_colours`.
+
+    >>> cascade_png(np.zeros((2, 2)))[:4]
+    b'\\x89PNG'
+    """
+    return encode_png(cascade_colours(index, weight, visibility))
