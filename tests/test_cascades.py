@@ -352,3 +352,19 @@ def test_the_report_colours_the_cascades(outdoor, tmp_path):
     assert len(pngs) == 1 and pngs[0].name in html and "cascades" in html
     px = parse_png(pngs[0].read_bytes())
     assert px[0, 0].tolist() == [255, 0, 0] and px[0, -1].tolist() == [0, 0, 255]
+
+
+def test_filter_footprints_keep_their_world_size_in_every_cascade():
+    """A cascade with texels 1/k as fine as cascade 0's (k = t_0/t_i) taps pcf at softness·k of its
+    own texels and blurs prefiltered maps over max(1, round(kernel·k)) texels: the same world size."""
+    from shadowlab.techniques.cascades import CSM
+    t0, ti = 0.05, 0.2
+    k = t0 / ti
+    pcf = CSM.cascade_values("pcf", {"softness": 2.0, "kernel": 5}, k)
+    assert pcf["softness"] * ti == pytest.approx(2.0 * t0) and pcf["kernel"] == 5
+    assert CSM.cascade_values("vsm", {"kernel": 9}, k)["kernel"] == 2
+    assert CSM.cascade_values("msm", {"kernel": 3}, k)["kernel"] == 1
+    assert CSM.cascade_values("esm", {"kernel": 7}, 1.0)["kernel"] == 7
+    same = {"light_scale": 1.0, "min_filter": 1.0, "normal_offset": 1.0, "slope_scaled_depth_bias": 2.0}
+    assert CSM.cascade_values("pcss", same, k) == same                 # light-size widths are world sizes already
+    assert CSM.cascade_values("hard", same, k) == same                 # acne biases stay per texel
