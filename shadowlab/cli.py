@@ -232,6 +232,9 @@ def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a 
         resolution: Optional[str] = typer.Option(None, "--resolution", "-r"),
         force: bool = typer.Option(False, "--force", help="Replace a --save-preset file and write into an --out "
                                    "directory that shadowlab did not create."),
+        frame: Optional[int] = FrameOpt,
+        frames: Optional[str] = typer.Option(None, "--frames", help="N:N, one frame of the camera path (a fit takes "
+                                             "one frame; fit several with one --frame each)."),
         variant: Optional[str] = VariantOpt):
     """Fit technique parameters to the ground truth; write DIR/fit.json, index.html, summary.md, preset.toml."""
     _init(variant)
@@ -239,7 +242,7 @@ def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a 
     run = run_fit(scene, technique, params=params, method=method, loss=loss, all_techniques=all_, sets=set_,
                   preset=preset, ranges=range_, budget=Budget(steps, lr, evals, grid_points, rounds), out=out,
                   save_preset=save_preset, preset_name=preset_name, resolution=parse_resolution(resolution),
-                  echo=lambda m: typer.echo(m, err=True), force=force)
+                  echo=lambda m: typer.echo(m, err=True), force=force, frame=frame, frames=frames)
     typer.echo(fit_table(run))
     typer.echo(f"report: {run['out']}")
     if save_preset:
@@ -304,10 +307,14 @@ def gate(gatefile: str = typer.Argument(..., help="Gate file (TOML), e.g. refere
          out: str = typer.Option("reports/gate", "--out", "-o", help="Directory for junit.xml and index.html."),
          only: Optional[str] = typer.Option(None, "--only", help="Comma-separated gate names to run."),
          force: bool = ForceOpt,
+         frame: Optional[int] = typer.Option(None, "--frame", help="Run every gate at frame N of its scene's camera "
+                                             "path (instead of the gate file's frame/frames)."),
+         frames: Optional[str] = typer.Option(None, "--frames", help="Run every gate at frames A:B (both ends "
+                                              "included), one gate per frame, named NAME@frameN."),
          variant: Optional[str] = VariantOpt):
     """Gate candidates against stored references; exit 0 pass, 1 a gate failed, 2 bad input."""
     code, results = run_gate_file(gatefile, out_dir=Path(out), only=_split(only) if only else None, variant=variant,
-                                  echo=typer.echo, force=force)
+                                  echo=typer.echo, force=force, frame=frame, frames=frames)
     if code:
         raise GateFailure(f"{sum(not r.passed for r in results)} gate(s) failed: "
                           f"{', '.join(r.name for r in results if not r.passed)}; see {Path(out) / 'index.html'}")

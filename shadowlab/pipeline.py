@@ -269,13 +269,14 @@ def _compare_at(sc, scene, techniques, overrides, base, render_missing, progress
     return run, frame, results
 
 
-def shimmer(scenes: list, fixed, results: dict) -> dict:
+def shimmer(scenes: list, fixed, results: dict, techniques: dict | None = None) -> dict:
     """Temporal stability of each technique along ``scenes`` (the loaded scene at each frame of a
     path, in order): visibility at ``fixed``'s G-buffer points (the FrameContext of the first
     frame) with each frame's light views, which read that frame's camera:
     ``FrameContext(scene=scene_t, gbuffer=fixed.gbuffer, unshadowed=fixed.unshadowed, sdf=fixed.sdf)``.
     ``results``: {technique: (ShadowResult on ``fixed``, params, ...)}; the first frame's
     visibility is that result. Points counted: valid and lit by the light (U_L > 0).
+    ``techniques``: {name: Technique} for names not in the registry (default: the registry).
 
     Returns {"techniques": {name: {"pooled": {...}, "per_light": {...}}}, "truth": {...}, "frames": [...]}
     (:func:`shadowlab.metrics.temporal.shimmer_per_light`). The truth's own shimmer is measured from
@@ -287,7 +288,7 @@ def shimmer(scenes: list, fixed, results: dict) -> dict:
     gvalid = np.asarray(fixed.gbuffer.valid.numpy(), bool).reshape(-1)
     valid = {l.name: gvalid & (vec_numpy(fixed.unshadowed[l.name]).sum(1) > 0) for l in fixed.lights}
     for n, (res0, p, *_rest) in results.items():
-        t = tbase.get(n)
+        t = (techniques or {}).get(n) or tbase.get(n)
         V = {l.name: [np.asarray(res0.visibility[l.name].numpy(), np.float64).reshape(-1)] for l in fixed.lights}
         for sc_t in scenes[1:]:
             ctx = FrameContext(scene=sc_t, gbuffer=fixed.gbuffer, unshadowed=fixed.unshadowed, sdf=fixed.sdf)
