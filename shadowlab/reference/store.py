@@ -476,7 +476,7 @@ def load(scene_spec, resolution=None, base: Path | None = None, check_hash: bool
         have = sorted(p.name for p in d.parent.iterdir() if _RES_DIR.match(p.name)) if d.parent.is_dir() else []
         at = f"{res[0]}x{res[1]}" + ("" if frame is None else f" frame {frame}")
         raise ReferenceError_(f"no reference for scene {scene_spec.name!r} at {at} (looked in {d})"
-                              + (f"; stored: {', '.join(have)}" if have else "")
+                              + (f"; stored resolutions: {', '.join(have)}" if have else "")
                               + f"; render one with `{cmd}`")
     problem = _problem(d)
     if problem:
