@@ -32,10 +32,11 @@ from .fit.report import summary_table as fit_table
 from .gate.runner import run_gate_file
 from .pipeline import compare as cmp
 from .pipeline import parse_resolution
-from .pipeline import reference as ref
+from .pipeline import reference_frames as ref_frames
 from .reference.truth import SEED_MAX
 from .reference.store import list_references
 from .report import summary_table
+from .report.frames import frames_summary
 from .scene.spec import builtin_names, load_spec, resolve
 from .techniques import base
 
@@ -69,6 +70,12 @@ VariantOpt = typer.Option(None, "--variant", callback=_check_variant,
                           help="Mitsuba variant: llvm_ad_rgb (default) or cuda_ad_rgb.")
 ForceOpt = typer.Option(False, "--force", help="Write into an existing --out directory that shadowlab did not "
                         "create (only the report's own files are replaced).")
+
+
+FrameOpt = typer.Option(None, "--frame", help="Frame N of the scene's camera path (0..frames-1; a scene without "
+                        "a path has only frame 0).")
+FramesOpt = typer.Option(None, "--frames", help="Frames A:B of the camera path, both ends included (0:3 is "
+                         "frames 0, 1, 2, 3).")
 
 
 def _init(variant):
@@ -126,11 +133,17 @@ def reference(scene: str = typer.Argument(..., help="Built-in scene name or path
               ss: int = typer.Option(1, "--ss", min=1, max=8, help="s×s shading points per pixel (supersampling)."),
               max_rounds: int = typer.Option(64, "--max-rounds", min=1, max=4096, help="Round cap of a penumbra "
                                              "pixel (8×8 shadow rays per round per light)."),
+              frame: Optional[int] = FrameOpt, frames: Optional[str] = FramesOpt,
               variant: Optional[str] = VariantOpt):
-    """Render and store the Mitsuba ground truth of a scene."""
+    """Render and store the Mitsuba ground truth of a scene (of each frame of a camera path: --frames)."""
     _init(variant)
-    path, meta = ref(scene, parse_resolution(resolution), force=force, seed=seed, target_se=target_se, spp=spp, ss=ss,
-                     max_rounds=max_rounds, progress=_progress())
+    done = ref_frames(scene, parse_resolution(resolution), frames, frame=frame, force=force, seed=seed,
+                      target_se=target_se, spp=spp, ss=ss, max_rounds=max_rounds, progress=_progress())
+    for _, path, meta in done:
+        _reference_done(path, meta)
+
+
+def _reference_done(path, meta):
     typer.echo(f"reference written to {path}: worst standard error {meta['max_std_error']:.4f}, "
                f"{meta['samples']['shadow_rays']:,} shadow rays, {meta['wall_time_s']:.1f} s")
     tm = meta.get("target_missed") or {}
@@ -149,16 +162,17 @@ def references():
         m = r["meta"]
         se = m.get("max_std_error")
         se = f"{se:.4f}" if isinstance(se, (int, float)) and not isinstance(se, bool) else "   n/a"
-        typer.echo(f"{r['scene']:18s} {r['resolution']:10s} worst se {se}  seed {m.get('seed')}  {r['path']}"
+        res = r["resolution"] + ("" if r.get("frame") is None else f" f{r['frame']}")
+        typer.echo(f"{r['scene']:18s} {res:10s} worst se {se}  seed {m.get('seed')}  {r['path']}"
                    + "".join(f"\n{'':18s} {p}" for p in r["status"]))
 
 
-def _compare(scene, techs, sets, out, resolution, variant, preset=None, force=False):
+def _compare(scene, techs, sets, out, resolution, variant, preset=None, force=False, frame=None, frames=None):
     _init(variant)
     run = cmp(scene, techs, sets, Path(out) if out else None, parse_resolution(resolution),
               params=preset.values if preset else None, preset=preset.info() if preset else None, force=force,
-              progress=_progress())
-    typer.echo(summary_table(run))
+              progress=_progress(), frame=frame, frames=frames)
+    typer.echo(frames_summary(run) if frames else summary_table(run))
     if out:
         typer.echo(f"report: {Path(out) / 'index.html'}")
     return run
@@ -174,12 +188,16 @@ def compare(scene: str = typer.Argument(..., help="Built-in scene name or path t
             out: Optional[str] = typer.Option(None, "--out", "-o", help="Report directory."),
             resolution: Optional[str] = typer.Option(None, "--resolution", "-r"),
             force: bool = ForceOpt,
+            frame: Optional[int] = FrameOpt,
+            frames: Optional[str] = typer.Option(None, "--frames", help="Frames A:B of the camera path, both ends "
+                                                 "included: a report per frame in OUT/frame_NNNN/ and a top-level "
+                                                 "technique × frame table with the shimmer (two frames or more)."),
             variant: Optional[str] = VariantOpt):
     """Compare techniques with the ground truth; write index.html, summary.md, metrics.json."""
     out = out or f"reports/{Path(scene).stem}"
     pre = load_preset(preset) if preset else None
     techs = _split(techniques_) if techniques_ is not None else list(pre.values) if pre else ["hard", "pcf"]
-    _compare(scene, techs, set_, out, resolution, variant, pre, force)
+    _compare(scene, techs, set_, out, resolution, variant, pre, force, frame, frames)
 
 
 @app.command()
@@ -216,6 +234,9 @@ def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a 
         resolution: Optional[str] = typer.Option(None, "--resolution", "-r"),
         force: bool = typer.Option(False, "--force", help="Replace a --save-preset file and write into an --out "
                                    "directory that shadowlab did not create."),
+        frame: Optional[int] = FrameOpt,
+        frames: Optional[str] = typer.Option(None, "--frames", help="N:N, one frame of the camera path (a fit takes "
+                                             "one frame; fit several with one --frame each)."),
         variant: Optional[str] = VariantOpt):
     """Fit technique parameters to the ground truth; write DIR/fit.json, index.html, summary.md, preset.toml."""
     _init(variant)
@@ -223,7 +244,7 @@ def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a 
     run = run_fit(scene, technique, params=params, method=method, loss=loss, all_techniques=all_, sets=set_,
                   preset=preset, ranges=range_, budget=Budget(steps, lr, evals, grid_points, rounds), out=out,
                   save_preset=save_preset, preset_name=preset_name, resolution=parse_resolution(resolution),
-                  echo=lambda m: typer.echo(m, err=True), force=force)
+                  echo=lambda m: typer.echo(m, err=True), force=force, frame=frame, frames=frames)
     typer.echo(fit_table(run))
     typer.echo(f"report: {run['out']}")
     if save_preset:
@@ -288,10 +309,14 @@ def gate(gatefile: str = typer.Argument(..., help="Gate file (TOML), e.g. refere
          out: str = typer.Option("reports/gate", "--out", "-o", help="Directory for junit.xml and index.html."),
          only: Optional[str] = typer.Option(None, "--only", help="Comma-separated gate names to run."),
          force: bool = ForceOpt,
+         frame: Optional[int] = typer.Option(None, "--frame", help="Run every gate at frame N of its scene's camera "
+                                             "path (instead of the gate file's frame/frames)."),
+         frames: Optional[str] = typer.Option(None, "--frames", help="Run every gate at frames A:B (both ends "
+                                              "included), one gate per frame, named NAME@frameN."),
          variant: Optional[str] = VariantOpt):
     """Gate candidates against stored references; exit 0 pass, 1 a gate failed, 2 bad input."""
     code, results = run_gate_file(gatefile, out_dir=Path(out), only=_split(only) if only else None, variant=variant,
-                                  echo=typer.echo, force=force)
+                                  echo=typer.echo, force=force, frame=frame, frames=frames)
     if code:
         raise GateFailure(f"{sum(not r.passed for r in results)} gate(s) failed: "
                           f"{', '.join(r.name for r in results if not r.passed)}; see {Path(out) / 'index.html'}")

@@ -2,6 +2,12 @@
 
     reference(scene)  : scene -> FrameContext -> ground truth -> references/<scene>/<W>x<H>/
     compare(scene, …) : scene -> FrameContext (once) -> each technique -> metrics -> report
+
+A scene with a camera path has one truth per frame (``frame=`` / ``frames=``; the store keeps them
+in ``<W>x<H>-f<NNNN>/``). ``compare(..., frames=(A, B))`` writes one report per frame and a
+top-level page with a technique × frame table and the temporal stability (shimmer,
+:mod:`shadowlab.metrics.temporal`) of every technique, measured at the first frame's G-buffer
+points while each frame's light views follow that frame's camera (:func:`shimmer`).
 """
 
 from __future__ import annotations
@@ -18,11 +24,14 @@ import numpy as np
 from . import backend
 from .errors import InputError, ReferenceError_
 from .metrics import compare_shaded, penumbra_mask, pooled_visibility
+from .metrics.temporal import shimmer_per_light
 from .reference import sdf_truth, store
 from .reference.truth import SEED_MAX, render_truth, target_missed
-from .render.frame import make_frame
+from .render.frame import FrameContext, make_frame
+from .render.gbuffer import vec_numpy
 from .render.shading import compose
 from .report import build
+from .report.frames import build_frames
 from .report.images import cascade_colours
 from .report.outdir import claim_dir
 from .scene import load
@@ -67,30 +76,85 @@ def check_reference_args(*, seed=0, target_se=0.005, spp=256, ss=1, max_rounds=6
     integer("--max-rounds", max_rounds, 1, 1 << 16)
 
 
-def load_scene(scene: str, resolution=None):
+def parse_frames(text) -> tuple[int, int] | None:
+    """``--frames A:B`` -> (A, B), both ends included (``0:3`` is frames 0, 1, 2 and 3); a
+    (A, B) pair or None passes through. InputError (exit 2) for anything else."""
+    if text is None or text == "":
+        return None
+    if isinstance(text, (tuple, list)):
+        a, b = (int(x) for x in text)
+    else:
+        parts = str(text).split(":")
+        try:
+            if len(parts) != 2:
+                raise ValueError
+            a, b = int(parts[0]), int(parts[1])
+        except ValueError:
+            raise InputError(f"--frames {text!r}: expected A:B, two frame indices with A <= B (both included), "
+                             "e.g. 0:3 for frames 0, 1, 2 and 3") from None
+    if a < 0 or b < a:
+        raise InputError(f"--frames {text!r}: expected A:B with 0 <= A <= B (both included), e.g. 0:3")
+    return a, b
+
+
+def frame_list(spec, frame: int | None = None, frames=None) -> list[int] | None:
+    """The frames ``--frame N`` / ``--frames A:B`` select on a scene (None: neither was given),
+    each checked against the scene's path (SceneError, exit 2, naming the valid range: 0..frames−1;
+    a scene without a camera path has only frame 0)."""
+    ab = parse_frames(frames)
+    if frame is not None and ab is not None:
+        raise InputError("--frame and --frames: give one of them (--frame N for one frame, --frames A:B for a range)")
+    if frame is not None:
+        return [spec.check_frame(frame)]
+    if ab is None:
+        return None
+    spec.check_frame(ab[0])
+    spec.check_frame(ab[1])
+    return list(range(ab[0], ab[1] + 1))
+
+
+def load_scene(scene: str, resolution=None, frame: int | None = None):
     backend.init()
-    return load(scene, resolution=resolution)
+    sc = load(scene, resolution=resolution)
+    return sc if frame is None else sc.at_frame(frame)
 
 
 def reference(scene: str, resolution=None, *, force: bool = False, seed: int = 0, target_se: float = 0.005,
               strata: int = 8, max_rounds: int = 64, spp: int = 256, base: Path | None = None,
-              progress: bool = True, ss: int = 1) -> tuple[Path, dict]:
+              progress: bool = True, ss: int = 1, frame: int | None = None) -> tuple[Path, dict]:
     """Render and store the ground truth of ``scene``; returns (path, meta).
 
     ``ss``: s×s sub-pixel shading points per pixel (G-buffer supersampling); techniques compared
-    with this reference are evaluated at the same points. Numeric arguments are range-checked
+    with this reference are evaluated at the same points. ``frame``: the camera path frame (None:
+    the scene as loaded, frame 0 of a path). Numeric arguments are range-checked
     (InputError, exit 2) before anything is loaded."""
+    return reference_frames(scene, resolution, frame=frame, force=force, seed=seed,
+                            target_se=target_se, strata=strata, max_rounds=max_rounds, spp=spp, base=base,
+                            progress=progress, ss=ss)[0][1:]
+
+
+def reference_frames(scene: str, resolution=None, frames=None, *, frame: int | None = None, force: bool = False,
+                     seed: int = 0, target_se: float = 0.005, strata: int = 8, max_rounds: int = 64, spp: int = 256,
+                     base: Path | None = None, progress: bool = True, ss: int = 1) -> list[tuple]:
+    """:func:`reference` for frame ``frame`` or each frame of ``frames`` (an (A, B) pair or "A:B",
+    both ends included; neither: the scene as loaded), each stored separately under the same rules
+    (its own lock, atomic save, ``force``). The geometry is loaded once. Returns [(frame, path, meta)]."""
     check_reference_args(seed=seed, target_se=target_se, spp=spp, ss=ss, max_rounds=max_rounds)
-    sc = load_scene(scene, resolution)
+    sc0 = load_scene(scene, resolution)
+    todo = frame_list(sc0.spec, frame, frames) or [None]
     if base is None and os.environ.get(store.ROOT_ENV) and not Path(os.environ[store.ROOT_ENV]).is_dir():
         print(f"note: {store.ROOT_ENV}={os.environ[store.ROOT_ENV]} does not exist; creating a new reference "
               "store there", file=sys.stderr)
-    dest = store.path_for(sc.name, sc.resolution, base, create=True)
-    with store.writing(dest, force=force, scene_name=sc.name, resolution=sc.resolution):
-        truth, meta = _render_reference(sc, seed=seed, target_se=target_se, strata=strata, max_rounds=max_rounds,
-                                        spp=spp, progress=progress, ss=ss)
-        path = store.save(truth, meta, dest, force=force)
-    return path, meta
+    out = []
+    for f in todo:
+        sc = sc0 if f is None else sc0.at_frame(f)
+        dest = store.path_for(sc.name, sc.resolution, base, create=True, frame=sc.frame)
+        with store.writing(dest, force=force, scene_name=sc.name, resolution=sc.resolution):
+            truth, meta = _render_reference(sc, seed=seed, target_se=target_se, strata=strata, max_rounds=max_rounds,
+                                            spp=spp, progress=progress, ss=ss)
+            path = store.save(truth, meta, dest, force=force)
+        out.append((sc.frame, path, meta))
+    return out
 
 
 def _render_reference(sc, *, seed, target_se, strata, max_rounds, spp, progress, ss):
@@ -106,6 +170,7 @@ def _render_reference(sc, *, seed, target_se, strata, max_rounds, spp, progress,
     wall = time.perf_counter() - t0
     info = backend.machine_info()
     meta = {"scene": sc.name, "scene_hash": sc.spec.digest(), "resolution": list(sc.resolution),
+            **({} if sc.frame is None else {"frame": sc.frame, "frames": sc.spec.frames}),
             "mitsuba": info["mitsuba"], "drjit": info["drjit"], "variant": info["variant"], "seed": seed, "supersampling": ss,
             "wall_time_s": wall, "max_std_error": truth.stats["max_std_error"],
             "samples": {"strata": f"{strata}x{strata} per round", "target_se": target_se, "max_rounds": max_rounds,
@@ -172,9 +237,91 @@ def technique_metrics(frame, truth, result) -> tuple[dict, dict, dict]:
     return m, per_light, imgs
 
 
+def _truth_of(sc, scene: str, base, render_missing: bool, progress: bool):
+    """(truth, meta) of a loaded scene at its frame; renders a missing one if ``render_missing``."""
+    try:
+        return store.load(sc.spec, sc.resolution, base)
+    except ReferenceError_ as e:
+        if "no reference" not in str(e) or not render_missing:
+            raise
+        reference(scene, sc.resolution, base=base, progress=progress, frame=sc.frame)
+        return store.load(sc.spec, sc.resolution, base)
+
+
+def _compare_at(sc, scene, techniques, overrides, base, render_missing, progress, preset):
+    """(run, frame, results) of one frame of a loaded scene (see :func:`compare`)."""
+    truth, meta = _truth_of(sc, scene, base, render_missing, progress)
+    frame = make_frame(sc, ss=int(meta.get("supersampling", 1)), seed=int(meta.get("seed", 0)))
+    results = run_techniques(frame, techniques, overrides)
+    run = {"scene": sc.name, "resolution": list(sc.resolution),
+           "reference": {"spp": float(np.mean(list(meta["samples"]["mean_rays_per_pixel"].values()))),
+                         "rays_per_pixel": meta["samples"]["mean_rays_per_pixel"], "max_std_error": meta["max_std_error"],
+                         "shadow_rays": meta["samples"]["shadow_rays"], "seed": meta.get("seed"),
+                         "supersampling": int(meta.get("supersampling", 1)),
+                         "path": str(store.path_for(sc.name, sc.resolution, base, frame=sc.frame))},
+           "lights": [l.name for l in sc.lights], "techniques": {},
+           "images": {"truth": {"shaded": truth.shaded, "vis": {n: lt.V for n, lt in truth.lights.items()}},
+                      "techniques": {}}, "machine": backend.machine_info()}
+    if sc.frame is not None:
+        run["frame"] = sc.frame
+    if truth.mitsuba is not None:
+        run["images"]["mitsuba"] = truth.mitsuba
+    if preset is not None:
+        run["preset"] = preset
+    for n, (res, p, timing) in results.items():
+        m, per_light, imgs = technique_metrics(frame, truth, res)
+        run["techniques"][n] = {"params": p, **timing, "metrics": m, "per_light": per_light,
+                                "stats": res.stats}
+        run["images"]["techniques"][n] = imgs
+    return run, frame, results
+
+
+def shimmer(scenes: list, fixed, results: dict, techniques: dict | None = None) -> dict:
+    """Temporal stability of each technique along ``scenes`` (the loaded scene at each frame of a
+    path, in order): visibility at ``fixed``'s G-buffer points (the FrameContext of the first
+    frame) with each frame's light views, which read that frame's camera:
+    ``FrameContext(scene=scene_t, gbuffer=fixed.gbuffer, unshadowed=fixed.unshadowed, sdf=fixed.sdf)``.
+    ``results``: {technique: (ShadowResult on ``fixed``, params, ...)}; the first frame's
+    visibility is that result. Points counted: valid and lit by the light (U_L > 0).
+    ``techniques``: {name: Technique} for names not in the registry (default: the registry).
+
+    Returns {"techniques": {name: {"pooled": {...}, "per_light": {...}}}, "truth": {...}, "frames": [...]}
+    (:func:`shadowlab.metrics.temporal.shimmer_per_light`). The truth's own shimmer is measured from
+    what the truth at a fixed point depends on, the lights and the shapes: when they are the same
+    in every frame (the scene format moves only the camera), V_t(x) = V_{t−1}(x) and it is 0
+    exactly, which ``truth["why"]`` says; otherwise it is not measured (``None``)."""
+    out = {"frames": [s.frame for s in scenes], "points": "G-buffer points of frame "
+           f"{scenes[0].frame} (valid and lit by the light)", "techniques": {}}
+    gvalid = np.asarray(fixed.gbuffer.valid.numpy(), bool).reshape(-1)
+    valid = {l.name: gvalid & (vec_numpy(fixed.unshadowed[l.name]).sum(1) > 0) for l in fixed.lights}
+    for n, (res0, p, *_rest) in results.items():
+        t = (techniques or {}).get(n) or tbase.get(n)
+        V = {l.name: [np.asarray(res0.visibility[l.name].numpy(), np.float64).reshape(-1)] for l in fixed.lights}
+        for sc_t in scenes[1:]:
+            ctx = FrameContext(scene=sc_t, gbuffer=fixed.gbuffer, unshadowed=fixed.unshadowed, sdf=fixed.sdf)
+            r = t.render(ctx, p)
+            dr.eval(*r.visibility.values())
+            for l in fixed.lights:
+                V[l.name].append(np.asarray(r.visibility[l.name].numpy(), np.float64).reshape(-1))
+        per, pooled = shimmer_per_light({k: (np.stack(v), valid[k]) for k, v in V.items()})
+        out["techniques"][n] = {"pooled": pooled, "per_light": per}
+    s0 = scenes[0].spec
+    static = all(s.spec.lights == s0.lights and s.spec.shapes == s0.shapes and s.spec.sdf == s0.sdf for s in scenes)
+    if static:
+        zero = {"mean": 0.0, "p99": 0.0, "max": 0.0}
+        out["truth"] = {"pooled": dict(zero), "per_light": {l.name: dict(zero) for l in fixed.lights},
+                        "why": "0 exactly: the truth at a fixed world point depends only on the lights and the shapes, "
+                               "which are the same in every frame of the path (only the camera moves)"}
+    else:  # pragma: no cover - the scene format cannot move lights or shapes along a path
+        out["truth"] = {"pooled": None, "per_light": None,
+                        "why": "not measured: lights or shapes differ between frames"}
+    return out
+
+
 def compare(scene: str, techniques: list[str], sets: list[str] | None = None, out: Path | None = None,
             resolution=None, *, render_missing: bool = False, progress: bool = True, base: Path | None = None,
-            params: dict | None = None, preset: dict | None = None, force: bool = False) -> dict:
+            params: dict | None = None, preset: dict | None = None, force: bool = False,
+            frame: int | None = None, frames=None) -> dict:
     """Compare ``techniques`` with the stored truth of ``scene``; write a report to ``out``.
 
     ``out`` is checked before anything is rendered: never inside the reference store, not an
@@ -185,6 +332,10 @@ def compare(scene: str, techniques: list[str], sets: list[str] | None = None, ou
     as is a stale or damaged one; ``render_missing=True`` renders and stores a missing one first.
     ``params``: {technique: {param: value}} applied under ``sets`` (e.g. a preset's values);
     ``preset``: {name, path, values} of that preset, recorded in the run (metrics.json, report).
+    ``frame``: compare at that frame of the camera path. ``frames``: (A, B) or "A:B", both ends
+    included: one report per frame in ``out/frame_<NNNN>/`` and a top-level index.html,
+    summary.md and metrics.json with a technique × frame table and, with two frames or more, the
+    shimmer of each technique (:func:`shimmer`); returns that top-level summary.
     """
     store_root = base or store.root()
     if out is not None:
@@ -196,33 +347,37 @@ def compare(scene: str, techniques: list[str], sets: list[str] | None = None, ou
         if n in overrides:
             overrides[n] = {**p, **overrides[n]}
     sc = load_scene(scene, resolution)
-    try:
-        truth, meta = store.load(sc.spec, sc.resolution, base)
-    except ReferenceError_ as e:
-        if "no reference" not in str(e) or not render_missing:
-            raise
-        reference(scene, sc.resolution, base=base, progress=progress)
-        truth, meta = store.load(sc.spec, sc.resolution, base)
-    frame = make_frame(sc, ss=int(meta.get("supersampling", 1)), seed=int(meta.get("seed", 0)))
-    results = run_techniques(frame, techniques, overrides)
-    run = {"scene": sc.name, "resolution": list(sc.resolution),
-           "reference": {"spp": float(np.mean(list(meta["samples"]["mean_rays_per_pixel"].values()))),
-                         "rays_per_pixel": meta["samples"]["mean_rays_per_pixel"], "max_std_error": meta["max_std_error"],
-                         "shadow_rays": meta["samples"]["shadow_rays"], "seed": meta.get("seed"),
-                         "supersampling": int(meta.get("supersampling", 1)),
-                         "path": str(store.path_for(sc.name, sc.resolution, base))},
-           "lights": [l.name for l in sc.lights], "techniques": {},
-           "images": {"truth": {"shaded": truth.shaded, "vis": {n: lt.V for n, lt in truth.lights.items()}},
-                      "techniques": {}}, "machine": backend.machine_info()}
-    if truth.mitsuba is not None:
-        run["images"]["mitsuba"] = truth.mitsuba
-    if preset is not None:
-        run["preset"] = preset
-    for n, (res, p, timing) in results.items():
-        m, per_light, imgs = technique_metrics(frame, truth, res)
-        run["techniques"][n] = {"params": p, **timing, "metrics": m, "per_light": per_light,
-                                "stats": res.stats}
-        run["images"]["techniques"][n] = imgs
+    sel = frame_list(sc.spec, frame, frames)
+    if frames is None:
+        if sel:
+            sc = sc.at_frame(sel[0])
+        run, _, _ = _compare_at(sc, scene, techniques, overrides, base, render_missing, progress, preset)
+        if out is not None:
+            build(Path(out), run, force=force, protected=[store_root])
+        return run
+    scenes = [sc.at_frame(f) for f in sel]
+    # every frame's truth is checked before anything is rendered or written
+    for s_ in scenes:
+        if not render_missing:
+            store.load(s_.spec, s_.resolution, base)
+    runs, fixed, first = [], None, None
+    for s_ in scenes:
+        run, fr, results = _compare_at(s_, scene, techniques, overrides, base, render_missing, progress, preset)
+        runs.append(run)
+        if fixed is None:
+            fixed, first = fr, results
+        if out is not None:
+            build(Path(out) / f"frame_{s_.frame:04d}", run, force=force, protected=[store_root])
+    summary = {"scene": sc.name, "resolution": list(sc.resolution), "frames": sel, "techniques": list(techniques),
+               "lights": [l.name for l in sc.lights],
+               "per_frame": {str(r["frame"] if "frame" in r else 0): {n: {"metrics": t["metrics"], "time_s": t["time_s"]}
+                                                                      for n, t in r["techniques"].items()}
+                             for r in runs},
+               "reports": {str(f): f"frame_{f:04d}/index.html" for f in sel} if out is not None else {},
+               "params": {n: runs[0]["techniques"][n]["params"] for n in techniques}}
+    if len(scenes) >= 2:
+        summary["shimmer"] = shimmer(scenes, fixed, first)
     if out is not None:
-        build(Path(out), run, force=force, protected=[store_root])
-    return run
+        build_frames(Path(out), summary, force=force, protected=[store_root])
+    summary["runs"] = runs
+    return summary

@@ -250,7 +250,7 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
                       "rays_per_pixel": meta["samples"]["mean_rays_per_pixel"],
                       "max_std_error": meta["max_std_error"], "seed": meta.get("seed"),
                       "supersampling": int(meta.get("supersampling", 1)),
-                      "path": str(store.path_for(spec.name, res, base)), "scene_hash": meta.get("scene_hash")},
+                      "path": str(store.path_for(spec.name, res, base, frame=spec.frame)), "scene_hash": meta.get("scene_hash")},
         "lights": run_lights,
         "ingest": {"image": str(image), "mode": "shaded" if shaded else "visibility", "against": against,
                    "channels": ({n: picked[n][0] for n in run_lights} if not shaded else {"rgb": rgb_names}),

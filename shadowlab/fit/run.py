@@ -17,7 +17,7 @@ import drjit as dr
 import numpy as np
 
 from ..errors import InputError, ShadowlabError
-from ..pipeline import load_scene, technique_metrics
+from ..pipeline import frame_list, load_scene, technique_metrics
 from ..reference import store
 from ..render.frame import make_frame
 from ..techniques import base as tbase
@@ -331,10 +331,19 @@ def execute(p: Plan, frame, truth, budget: Budget) -> dict:
     }
 
 
-def prepare(scene: str, resolution=None, base: Path | None = None):
+def prepare(scene: str, resolution=None, base: Path | None = None, frame: int | None = None, frames=None):
     """(scene, truth, meta, frame): the stored reference is required (never rendered here);
-    a missing or stale one is a ReferenceError_ (exit 2) naming the command that makes it."""
+    a missing or stale one is a ReferenceError_ (exit 2) naming the command that makes it.
+    ``frame`` / ``frames``: the camera path frame fitted. A fit takes one frame: ``frames`` A:B
+    with A < B is refused (exit 2; fit each frame with ``--frame``), since the searches optimise
+    the loss of one FrameContext."""
     sc = load_scene(scene, resolution)
+    sel = frame_list(sc.spec, frame, frames)
+    if sel and len(sel) > 1:
+        raise InputError(f"fit takes one frame of the camera path; --frames {sel[0]}:{sel[-1]} selects {len(sel)}: "
+                         f"fit one frame with --frame N (0..{sc.spec.frames - 1}) or give --frames N:N")
+    if sel:
+        sc = sc.at_frame(sel[0])
     truth, meta = store.load(sc.spec, sc.resolution, base)
     frame = make_frame(sc, ss=int(meta.get("supersampling", 1)), seed=int(meta.get("seed", 0)))
     return sc, truth, meta, frame
@@ -343,7 +352,7 @@ def prepare(scene: str, resolution=None, base: Path | None = None):
 def fit(scene: str, technique: str | None = None, *, params=None, method: str = "auto", loss: str | None = None,
         all_techniques: bool = False, sets=None, preset=None, ranges=None, budget: Budget | None = None,
         out=None, save_preset=None, preset_name: str | None = None, resolution=None, base: Path | None = None,
-        echo=None, force: bool = False) -> dict:
+        echo=None, force: bool = False, frame: int | None = None, frames=None) -> dict:
     """The ``shadowlab fit`` job. Returns the run dict (``mode`` "one" or "all") and writes the
     report to ``out`` (if given) and the preset to ``save_preset`` (if given)."""
     budget = (budget or Budget()).check()
@@ -369,7 +378,7 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
         R.check_out(Path(out), force, protected)
     if save_preset is not None:
         P.check_writable(save_preset, force, protected)
-    sc, truth, meta, frame = prepare(scene, resolution, base)
+    sc, truth, meta, frame = prepare(scene, resolution, base, frame=frame, frames=frames)
     plans, skipped = {}, {}
     for t in techs:
         s = {**(pre.values.get(t, {}) if pre else {}), **sets_by.get(t, {})}
@@ -394,7 +403,8 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
             skipped[t] = str(e)
     if not results:
         raise InputError("no technique could be fitted: " + "; ".join(f"{k}: {v}" for k, v in skipped.items()))
-    run = {"scene": sc.name, "resolution": list(sc.resolution), "mode": "all" if all_techniques else "one",
+    run = {"scene": sc.name, "resolution": list(sc.resolution), **({} if sc.frame is None else {"frame": sc.frame}),
+           "mode": "all" if all_techniques else "one",
            "method": method, "loss": loss or ", ".join(sorted({p.loss for p in plans.values()})),
            "budget": budget.__dict__,
            "reference": {"path": str(_ref_path(sc, base)), "max_std_error": meta.get("max_std_error"),
@@ -414,4 +424,4 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
 
 
 def _ref_path(sc, base):
-    return store.path_for(sc.name, sc.resolution, base)
+    return store.path_for(sc.name, sc.resolution, base, frame=sc.frame)

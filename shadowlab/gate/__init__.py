@@ -53,6 +53,8 @@ Gate file (TOML, ``references/gates.toml``; paths relative to the file)::
     name = "contact/truth-shaded"    # unique; the JUnit test class
     scene = "contact"                # built-in name or path to a .toml scene
     resolution = [128, 128]          # optional: default the scene's
+    # frame = 3                      # a camera path's frame; or frames = "0:3" (both ends included):
+    #                                #   one gate per frame, named NAME@frameN (--only NAME runs them all)
     target = "shaded"                # shaded | visibility | mitsuba
     # light = "key"                  # visibility: which light (default: the only one)
     candidate = { truth = true, seed = 1 }     # or { technique = "pcss", params = { kernel = 5 } }

@@ -9,7 +9,7 @@ every error names the file, the gate and the key. The format is documented in
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 try:
@@ -18,6 +18,7 @@ except ModuleNotFoundError:  # pragma: no cover - python < 3.11
     import tomli as tomllib
 
 from ..errors import InputError, SceneError
+from ..pipeline import frame_list
 from ..reference.truth import SEED_MAX
 from ..scene._reader import check_param_values, did_you_mean
 from ..scene.spec import load_spec, resolve
@@ -30,7 +31,8 @@ __all__ = ["CandidateSpec", "GateSpec", "GateFile", "load_gate_file", "parse_gat
 
 FORMAT_VERSION = 1
 _TOP_KEYS = ("version", "references", "defaults", "gate")
-_GATE_KEYS = ("name", "description", "scene", "resolution", "target", "light", "candidate", "statistical", "budget")
+_GATE_KEYS = ("name", "description", "scene", "resolution", "frame", "frames", "target", "light", "candidate",
+              "statistical", "budget")
 _CAND_KEYS = {"technique": ("technique", "params"), "exr": ("exr", "channel", "variance", "std_error"),
               "truth": ("truth", "seed")}
 
@@ -69,6 +71,13 @@ class GateSpec:
     candidate: CandidateSpec
     thresholds: Thresholds
     description: str = ""
+    frame: int | None = None      # the camera path frame gated (None: the scene as it is)
+    group: str | None = None      # the gate file's name of a gate expanded over frames (``frames``)
+
+    def at_frame(self, f: int) -> "GateSpec":
+        """This gate at frame ``f``, named ``<name>@frame<f>`` (``--only <name>`` still selects it)."""
+        group = self.group or self.name
+        return replace(self, frame=f, name=f"{group}@frame{f}", group=group)
 
 
 @dataclass(frozen=True)
@@ -81,11 +90,15 @@ class GateFile:
         if not names:
             return list(self.gates)
         have = {g.name: g for g in self.gates}
-        missing = [n for n in names if n not in have]
+        groups = {}
+        for g in self.gates:
+            if g.group:
+                groups.setdefault(g.group, []).append(g)
+        missing = [n for n in names if n not in have and n not in groups]
         if missing:
             raise InputError(f"{self.path}: no gate named {', '.join(map(repr, missing))}; its gates: "
-                             f"{', '.join(have)}")
-        return [have[n] for n in names]
+                             f"{', '.join(dict.fromkeys([g.group or g.name for g in self.gates]))}")
+        return [g for n in names for g in ([have[n]] if n in have else groups[n])]
 
 
 
@@ -187,6 +200,25 @@ def _resolution(where: str, v):
     return tuple(v)
 
 
+def gate_frames(where: str, spec, frame=None, frames=None) -> list | None:
+    """The frames a gate runs at: ``frame = N`` or ``frames = "A:B"`` / ``[A, B]`` (both ends
+    included), each checked against the scene's camera path (exit 2 naming the valid range)."""
+    if frame is not None and frames is not None:
+        raise InputError(f"{where}: give frame = N or frames = \"A:B\", not both")
+    if frame is not None and (isinstance(frame, bool) or not isinstance(frame, int)):
+        raise InputError(f"{where}: frame must be an integer frame index, got {frame!r}")
+    if frames is not None:
+        ok = (isinstance(frames, str) and frames.count(":") == 1) or (
+            isinstance(frames, list) and len(frames) == 2 and all(isinstance(x, int) and not isinstance(x, bool)
+                                                                 for x in frames))
+        if not ok:
+            raise InputError(f"{where}: frames must be \"A:B\" or [A, B] (frame indices, both included), got {frames!r}")
+    try:
+        return frame_list(spec, frame, frames)
+    except (InputError, SceneError) as e:
+        raise InputError(f"{where}: {e}") from None
+
+
 def parse_gate_file(data: Mapping, path: Path) -> GateFile:
     """A validated :class:`GateFile` from parsed TOML ``data`` read from ``path``."""
     path = Path(path)
@@ -263,7 +295,14 @@ def parse_gate_file(data: Mapping, path: Path) -> GateFile:
         desc = g.get("description", "")
         if not isinstance(desc, str):
             raise InputError(f"{w}: description must be a string")
-        out.append(GateSpec(name, scene, res, target, light, cand, th, desc))
+        gs = GateSpec(name, scene, res, target, light, cand, th, desc)
+        sel = gate_frames(w, spec, g.get("frame"), g.get("frames"))
+        if sel is None:
+            out.append(gs)
+        elif "frame" in g:
+            out.append(replace(gs, frame=sel[0]))
+        else:
+            out.extend(gs.at_frame(f) for f in sel)
     return GateFile(path=path, references=refs, gates=tuple(out))
 
 

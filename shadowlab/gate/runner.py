@@ -17,6 +17,7 @@ interruption propagates (exit 130 / 143).
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import drjit as dr
@@ -34,7 +35,7 @@ from ..scene import load
 from ..scene.spec import load_spec, resolve
 from ..techniques import base as tbase
 from .check import GateResult, check, truth_target
-from .gatefile import GateFile, GateSpec, load_gate_file
+from .gatefile import GateFile, GateSpec, gate_frames, load_gate_file
 from .html import write_page
 from .junit import write_junit
 
@@ -133,30 +134,34 @@ class _Context:
         self.specs, self.truths, self.scenes, self.frames = {}, {}, {}, {}
 
     def spec(self, g: GateSpec):
-        key = (g.scene, g.resolution)
+        key = (g.scene, g.resolution, g.frame)
         if key not in self.specs:
             spec = load_spec(resolve(g.scene))
-            self.specs[key] = spec.with_resolution(*g.resolution) if g.resolution else spec
+            spec = spec.with_resolution(*g.resolution) if g.resolution else spec
+            self.specs[key] = spec if g.frame is None else spec.at_frame(g.frame)
         return self.specs[key]
 
     def truth(self, g: GateSpec):
-        key = (g.scene, g.resolution)
+        key = (g.scene, g.resolution, g.frame)
         if key not in self.truths:
             spec = self.spec(g)
             self.truths[key] = store.load(spec, spec.camera.resolution, self.gf.references)
         return self.truths[key]
 
     def scene(self, g: GateSpec):
-        key = (g.scene, g.resolution)
+        key = (g.scene, g.resolution, g.frame)
         if key not in self.scenes:
-            backend.init(self.variant)
-            self.scenes[key] = load(g.scene, resolution=g.resolution)
+            base_key = (g.scene, g.resolution, None)
+            if base_key not in self.scenes:  # the geometry is loaded once; a frame only gets its own sensor
+                backend.init(self.variant)
+                self.scenes[base_key] = load(g.scene, resolution=g.resolution)
+            self.scenes[key] = self.scenes[base_key] if g.frame is None else self.scenes[base_key].at_frame(g.frame)
         return self.scenes[key]
 
     def frame(self, g: GateSpec, seed: int | None = None):
         _, meta = self.truth(g)
         seed = int(meta.get("seed", 0)) if seed is None else seed
-        key = (g.scene, g.resolution, seed)
+        key = (g.scene, g.resolution, g.frame, seed)
         if key not in self.frames:
             self.frames[key] = make_frame(self.scene(g), ss=int(meta.get("supersampling", 1)), seed=seed)
         return self.frames[key]
@@ -206,18 +211,40 @@ def run_gate(ctx: _Context, g: GateSpec) -> GateResult:
         raise InputError(f"gate {g.name!r} ({c.describe()}): {e}") from None
     spec = ctx.spec(g)
     res.info.update({"scene": spec.name, "candidate": c.describe(), "description": g.description,
-                     "reference": str(store.path_for(spec.name, spec.camera.resolution, ctx.gf.references)),
+                     **({} if g.frame is None else {"frame": g.frame}),
+                     "reference": str(store.path_for(spec.name, spec.camera.resolution, ctx.gf.references,
+                                                     frame=spec.frame)),
                      "time_s": time.perf_counter() - t0})
     return res
 
 
-def run_gates(gf: GateFile, only=None, variant=None, echo=None, into: list | None = None) -> list[GateResult]:
+def at_frames(gf: GateFile, gates: list, frame=None, frames=None) -> list:
+    """``shadowlab gate --frame N`` / ``--frames A:B``: every gate at those frames (instead of
+    the gate file's own ``frame`` / ``frames``); a frame out of a scene's range exits 2."""
+    if frame is None and frames is None:
+        return gates
+    out, seen = [], set()
+    for g in gates:
+        key = g.group or g.name
+        if key in seen:
+            continue
+        seen.add(key)
+        spec = load_spec(resolve(g.scene))
+        sel = gate_frames(f"{gf.path}: gate {key!r} (--frame/--frames)", spec, frame,
+                          None if frames is None else str(frames))
+        out.extend(replace(g, name=key, group=None).at_frame(f) for f in sel)
+    return out
+
+
+def run_gates(gf: GateFile, only=None, variant=None, echo=None, into: list | None = None, frame=None,
+              frames=None) -> list[GateResult]:
     """Evaluate the gates of ``gf`` (all, or the names in ``only``); ``echo(line)`` gets one line
     per check as soon as a gate is done. Bad input raises before any output file is written.
-    ``into``: a list the results are appended to as they come (what was done when interrupted)."""
+    ``into``: a list the results are appended to as they come (what was done when interrupted).
+    ``frame`` / ``frames``: run every gate at these camera path frames (:func:`at_frames`)."""
     ctx = _Context(gf, variant)
     out = [] if into is None else into
-    for g in gf.select(only):
+    for g in at_frames(gf, gf.select(only), frame, frames):
         r = run_gate(ctx, g)
         out.append(r)
         if echo:
@@ -238,7 +265,7 @@ def _write_outputs(out_dir: Path, path, results, wall: float, interrupted: str |
 
 
 def run_gate_file(path, out_dir=None, only=None, variant=None, echo=print,
-                  force: bool = False) -> tuple[int, list[GateResult]]:
+                  force: bool = False, frame=None, frames=None) -> tuple[int, list[GateResult]]:
     """``shadowlab gate``: evaluate, print one line per check, write ``out_dir/junit.xml`` and
     ``out_dir/index.html``; returns (exit code 0 all passed / 1 a gate failed, results). The CLI
     turns 1 into :class:`~shadowlab.errors.GateFailure` (exit code 1). Interrupted (SIGINT /
@@ -250,9 +277,9 @@ def run_gate_file(path, out_dir=None, only=None, variant=None, echo=print,
         claim_dir(out_dir, "gate", force=force, protected=[gf.references, store.root()], files=OUTPUT_FILES)
     t0 = time.perf_counter()
     results: list = []
-    n_gates = len(gf.select(only))
+    n_gates = len(at_frames(gf, gf.select(only), frame, frames))
     try:
-        run_gates(gf, only=only, variant=variant, echo=echo, into=results)
+        run_gates(gf, only=only, variant=variant, echo=echo, into=results, frame=frame, frames=frames)
     except (KeyboardInterrupt, Interrupted) as e:
         what = e.signal_name if isinstance(e, Interrupted) else "SIGINT"
         note = f"after {len(results)} of {n_gates} gates; the run is incomplete"

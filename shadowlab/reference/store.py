@@ -1,5 +1,10 @@
 """The reference store: ``references/<scene>/<W>x<H>/truth.exr`` + ``meta.json``.
 
+A scene with a camera path (``[camera.path]``) stores each frame's truth separately, in
+``references/<scene>/<W>x<H>-f<NNNN>/`` (frame index, at least four digits: ``96x64-f0003``), beside
+and under the same rules as any other reference (its own lock ``.locks/<scene>.<W>x<H>-f<NNNN>.lock``,
+atomic exchange, checksum, stale scene hash). A scene without a path keeps ``<W>x<H>/``.
+
 EXR channels (one float32 image each): ``V.<light>``, ``V.<light>.se`` (visibility ratio and
 its standard error), ``A.<light>``, ``A.<light>.se`` (plain visible fraction), ``N.<light>``
 (shadow rays per pixel), ``B.<light>`` (rule-of-three bound of unanimous pixels),
@@ -59,7 +64,7 @@ ROOT_ENV = "SHADOWLAB_REFERENCES"
 LOCK_DIR = ".locks"
 CHECKSUM_KEY = "truth_sha256"
 FILES = ("truth.exr", "meta.json")
-_RES_DIR = re.compile(r"^[0-9]+x[0-9]+$")
+_RES_DIR = re.compile(r"^([0-9]+)x([0-9]+)(?:-f([0-9]+))?$")
 _HELD: dict[str, int] = {}   # lock file path -> fd, locks this process holds (re-entrant)
 
 
@@ -87,13 +92,33 @@ def root(create: bool = False) -> Path:
     return p
 
 
-def path_for(scene_name: str, resolution, base: Path | None = None, create: bool = False) -> Path:
+def dir_name(resolution, frame: int | None = None) -> str:
+    """``<W>x<H>``, or ``<W>x<H>-f<NNNN>`` for frame ``frame`` of a camera path.
+
+    >>> dir_name((96, 64)), dir_name((96, 64), 3)
+    ('96x64', '96x64-f0003')
+    """
     W, H = resolution
-    return Path(base or root(create)) / scene_name / f"{W}x{H}"
+    return f"{W}x{H}" + ("" if frame is None else f"-f{int(frame):04d}")
 
 
-def reference_command(scene_name: str, resolution) -> str:
-    return f"shadowlab reference {scene_name} --resolution {resolution[0]}x{resolution[1]}"
+def parse_dir_name(name: str):
+    """((W, H), frame or None) of a reference directory's name, or None if it is not one."""
+    m = _RES_DIR.match(name)
+    if not m:
+        return None
+    return (int(m[1]), int(m[2])), (None if m[3] is None else int(m[3]))
+
+
+def path_for(scene_name: str, resolution, base: Path | None = None, create: bool = False,
+             frame: int | None = None) -> Path:
+    """The directory of a reference; ``frame``: the camera path frame (``SceneSpec.frame``)."""
+    return Path(base or root(create)) / scene_name / dir_name(resolution, frame)
+
+
+def reference_command(scene_name: str, resolution, frame: int | None = None) -> str:
+    return (f"shadowlab reference {scene_name} --resolution {resolution[0]}x{resolution[1]}"
+            + ("" if frame is None else f" --frame {frame}"))
 
 
 # ------------------------------------------------------------------------------------- locking
@@ -262,7 +287,9 @@ def check_writable(dest: Path, force: bool = False, scene_name: str | None = Non
     dest = Path(dest)
     if not dest.exists() or force:
         return
-    cmd = reference_command(scene_name or dest.parent.name, resolution or dest.name.split("x"))
+    parsed = parse_dir_name(dest.name)
+    frame = parsed[1] if parsed else None
+    cmd = reference_command(scene_name or dest.parent.name, resolution or (parsed[0] if parsed else ("W", "H")), frame)
     missing = [f for f in FILES if not (dest / f).is_file()]
     if missing:
         raise ReferenceError_(f"the reference at {dest} is incomplete ({' and '.join(missing)} missing); "
@@ -441,12 +468,14 @@ def load(scene_spec, resolution=None, base: Path | None = None, check_hash: bool
     """(Truth, meta) of a scene's stored reference; raises ReferenceError_ if missing, incomplete,
     damaged (checksum, keys, channels, size) or stale."""
     res = tuple(resolution or scene_spec.camera.resolution)
-    d = path_for(scene_spec.name, res, base)
-    cmd = reference_command(scene_arg(scene_spec), res)
+    frame = getattr(scene_spec, "frame", None)
+    d = path_for(scene_spec.name, res, base, frame=frame)
+    cmd = reference_command(scene_arg(scene_spec), res, frame)
     _note(recover(d))
     if not d.exists():
         have = sorted(p.name for p in d.parent.iterdir() if _RES_DIR.match(p.name)) if d.parent.is_dir() else []
-        raise ReferenceError_(f"no reference for scene {scene_spec.name!r} at {res[0]}x{res[1]} (looked in {d})"
+        at = f"{res[0]}x{res[1]}" + ("" if frame is None else f" frame {frame}")
+        raise ReferenceError_(f"no reference for scene {scene_spec.name!r} at {at} (looked in {d})"
                               + (f"; stored resolutions: {', '.join(have)}" if have else "")
                               + f"; render one with `{cmd}`")
     problem = _problem(d)
@@ -499,9 +528,9 @@ def _scene_file(scene: str, meta: dict) -> Path | None:
 
 def _status(d: Path, scene: str, meta) -> list[str]:
     """Problems of one listed reference (empty: fine)."""
-    res = tuple(int(x) for x in d.name.split("x"))
+    res, frame = parse_dir_name(d.name)
     src = meta.get("scene_file") if isinstance(meta, dict) else None   # a scene known only by its path
-    cmd = reference_command(shlex.quote(src) if isinstance(src, str) and src else scene, res)
+    cmd = reference_command(shlex.quote(src) if isinstance(src, str) and src else scene, res, frame)
     problem = _problem(d)
     if problem:
         return [f"incomplete: {problem}; re-render with `{cmd} --force`"]
@@ -520,10 +549,15 @@ def _status(d: Path, scene: str, meta) -> list[str]:
         out.append("scene file not found: freshness not checked")
     else:
         try:
-            fresh = load_spec(sf).with_resolution(*res).digest() == meta["scene_hash"]
+            spec = load_spec(sf).with_resolution(*res)
         except ShadowlabError:
             out.append(f"scene file {sf} does not load: freshness not checked")
         else:
+            if frame is not None and frame >= spec.frames:   # the path got shorter (or was removed)
+                out.append(f"stale: scene {scene!r} has no frame {frame} now ({spec.frame_range_text()}); delete {d}")
+                fresh = True
+            else:   # a frame directory of a scene without a path now never matches (its hash has no path)
+                fresh = (spec if frame is None else spec.at_frame(frame)).digest() == meta["scene_hash"]
             if not fresh:
                 out.append(f"stale: scene {scene!r} changed since; re-render with `{cmd} --force`")
     tm = meta.get("target_missed")
@@ -533,7 +567,7 @@ def _status(d: Path, scene: str, meta) -> list[str]:
 
 
 def list_references(base: Path | None = None) -> list[dict]:
-    """Every stored reference: scene, resolution, path, meta and ``status`` (a list of problems:
+    """Every stored reference: scene, resolution (``"WxH"``), frame (None, or the camera path frame), path, meta and ``status`` (a list of problems:
     incomplete, damaged, stale, checksum mismatch, ...; empty when the reference is fine).
     Temporary and leftover directories of interrupted saves are not references and are not listed."""
     out = []
@@ -546,6 +580,7 @@ def list_references(base: Path | None = None) -> list[dict]:
                 meta = read_json(d / "meta.json") if (d / "meta.json").is_file() else {}
             except ShadowlabError:  # a broken meta is listed as such, not fatal
                 meta = {"error": "unreadable meta.json"}
-            out.append({"scene": sd.name, "resolution": d.name, "path": str(d), "meta": meta,
-                        "status": _status(d, sd.name, meta)})
+            res, frame = parse_dir_name(d.name)
+            out.append({"scene": sd.name, "resolution": f"{res[0]}x{res[1]}", "frame": frame, "path": str(d),
+                        "meta": meta, "status": _status(d, sd.name, meta)})
     return out

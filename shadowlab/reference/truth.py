@@ -155,7 +155,8 @@ def mitsuba_render(scene, spp: int = 256, passes: int = 4, seed: int = 0):
     independent renders of spp/passes samples each."""
     integrator = mi.load_dict({"type": "direct"})
     per = max(1, spp // passes)
-    imgs = [np.asarray(mi.render(scene.mi_scene, spp=per, seed=seed * 1000 + i, integrator=integrator))
+    imgs = [np.asarray(mi.render(scene.mi_scene, sensor=scene.sensor, spp=per, seed=seed * 1000 + i,
+                                    integrator=integrator))
             for i in range(passes)]
     stack = np.stack(imgs).astype(np.float64)
     mean = stack.mean(0)

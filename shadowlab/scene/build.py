@@ -14,7 +14,7 @@ through transparent texels (:func:`transparent`); without alpha shapes they stay
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import mitsuba as mi
 import numpy as np
@@ -149,6 +149,21 @@ class Scene:
         return self.spec.name
 
     @property
+    def frame(self):
+        """The camera path frame this scene is at (None for a scene without a camera path)."""
+        return self.spec.frame
+
+    def at_frame(self, i: int) -> "Scene":
+        """This scene at frame ``i`` of its camera path, without reloading the geometry: the same
+        Mitsuba scene and emitters, a new sensor with frame ``i``'s camera (``sensor`` is what the
+        G-buffer's camera rays and the truth's ``mi.render`` use). SceneError (exit 2) naming the
+        valid range when ``i`` is out of range; a scene without a path has only frame 0 (itself)."""
+        spec = self.spec.at_frame(i)
+        if spec is self.spec:
+            return self
+        return replace(self, spec=spec, sensor=mi.load_dict(sensor_dict(spec.camera)))
+
+    @property
     def kind(self) -> str:
         """``"mitsuba"`` or ``"sdf"``: :attr:`shadowlab.scene.spec.SceneSpec.kind`."""
         return self.spec.kind
@@ -235,9 +250,12 @@ def build(spec: SceneSpec) -> Scene:
                  shape_boxes=boxes)
 
 
-def load(scene: str, resolution: tuple | None = None) -> Scene:
-    """Built-in scene name or TOML path -> loaded Scene, optionally at another resolution."""
+def load(scene: str, resolution: tuple | None = None, frame: int | None = None) -> Scene:
+    """Built-in scene name or TOML path -> loaded Scene, optionally at another resolution and at
+    frame ``frame`` of its camera path (None: the scene as it is, frame 0 of a path)."""
     spec = load_spec(resolve(scene))
     if resolution:
         spec = spec.with_resolution(*resolution)
+    if frame is not None:
+        spec = spec.at_frame(frame)
     return build(spec)

@@ -7,6 +7,9 @@ name = "contact"
 description = "..."
 [camera]      position, target, up, fov (degrees, horizontal), resolution = [W, H],
               near, far (clip planes, m; default CAMERA_NEAR / CAMERA_FAR)
+[camera.path] frames, interpolation = "linear" | "catmull-rom", [[camera.path.keys]] (frame,
+              position, target, fov, up; missing ones default to [camera]'s) or
+              [[camera.path.cameras]] (one camera per frame): see :class:`CameraPath`
 [[lights]]    name, kind = rect|disk|sphere|spot|point|directional, colour and power, size ...
 [[shapes]]    name, type = rectangle|disk|cube|sphere|cylinder|ply|obj, albedo, transform,
               alpha_texture = "textures/leaf.png", alpha_cutoff = 0.5 (alpha-tested casters)
@@ -67,6 +70,77 @@ class Camera:
     @property
     def far_clip(self) -> float:
         return CAMERA_FAR if self.far is None else float(self.far)
+
+
+#: most frames of a camera path (each frame may get its own stored reference)
+FRAMES_MAX = 100000
+INTERPOLATIONS = ("linear", "catmull-rom")
+
+
+@dataclass(frozen=True)
+class CameraKey:
+    """One keyframe of a camera path (or one camera of an explicit list): a frame index and the
+    camera's position, target, fov and up there (each defaulting to ``[camera]``'s when not given)."""
+
+    frame: int
+    position: tuple
+    target: tuple
+    fov: float
+    up: tuple
+
+
+def _lerp(a, b, t):
+    return tuple(x + (y - x) * t for x, y in zip(a, b))
+
+
+def _catmull_rom(p0, p1, p2, p3, t):
+    """Uniform Catmull-Rom between p1 (t = 0) and p2 (t = 1); p0, p3 are the neighbouring keys."""
+    t2, t3 = t * t, t * t * t
+    return tuple(0.5 * (2 * b + (-a + c) * t + (2 * a - 5 * b + 4 * c - d) * t2 + (-a + 3 * b - 3 * c + d) * t3)
+                 for a, b, c, d in zip(p0, p1, p2, p3))
+
+
+@dataclass(frozen=True)
+class CameraPath:
+    """A camera path of ``frames`` frames (README, "Scene format", camera paths).
+
+    ``keys`` are keyframes at strictly increasing frame indices from 0 to frames − 1; frame i
+    between keys k and k+1 is at t = (i − f_k)/(f_{k+1} − f_k). ``interpolation`` "linear"
+    interpolates position, target and up linearly; "catmull-rom" uses the uniform Catmull-Rom
+    spline through the keys (the first and last keys mirrored to give the end tangents), which
+    passes through every key with a continuous velocity. fov is always interpolated linearly.
+    ``explicit``: the path was given as ``[[camera.path.cameras]]``, one key per frame.
+
+    >>> k0 = CameraKey(0, (0.0, 1.0, 5.0), (0.0, 0.0, 0.0), 40.0, (0.0, 1.0, 0.0))
+    >>> k1 = CameraKey(4, (4.0, 1.0, 5.0), (0.0, 0.0, 0.0), 60.0, (0.0, 1.0, 0.0))
+    >>> path = CameraPath(frames=5, keys=(k0, k1))
+    >>> path.key_at(1).position, path.key_at(1).fov
+    ((1.0, 1.0, 5.0), 45.0)
+    """
+
+    frames: int
+    interpolation: str = "linear"
+    keys: tuple = ()
+    explicit: bool = False
+
+    def key_at(self, i: int) -> CameraKey:
+        """The camera of frame ``i`` (0 ≤ i < frames) as a :class:`CameraKey`."""
+        ks = self.keys
+        for k in ks:
+            if k.frame == i:
+                return k
+        j = max(n for n, k in enumerate(ks) if k.frame < i)
+        a, b = ks[j], ks[j + 1]
+        t = (i - a.frame) / (b.frame - a.frame)
+        fov = a.fov + (b.fov - a.fov) * t
+        if self.interpolation == "catmull-rom":
+            def pt(attr):
+                p1, p2 = getattr(a, attr), getattr(b, attr)
+                p0 = getattr(ks[j - 1], attr) if j > 0 else tuple(2 * x - y for x, y in zip(p1, p2))
+                p3 = getattr(ks[j + 2], attr) if j + 2 < len(ks) else tuple(2 * y - x for x, y in zip(p1, p2))
+                return _catmull_rom(p0, p1, p2, p3, t)
+            return CameraKey(i, pt("position"), pt("target"), fov, pt("up"))
+        return CameraKey(i, _lerp(a.position, b.position, t), _lerp(a.target, b.target, t), fov, _lerp(a.up, b.up, t))
 
 
 @dataclass(frozen=True)
@@ -146,6 +220,35 @@ class SceneSpec:
     description: str = ""
     source: str = ""             # path of the TOML file (not part of the hash)
     sdf: tuple = ()              # [[sdf]] tables (shadowlab.scene.sdf_spec): SDF-only objects, no Mitsuba twin
+    path: CameraPath | None = None   # [camera.path]: the camera moves; None: one static camera
+    frame: int | None = None         # the frame this spec is at (None without a path); camera is that frame's
+
+    @property
+    def frames(self) -> int:
+        """Frames of the camera path (1 for a scene without one)."""
+        return 1 if self.path is None else self.path.frames
+
+    def frame_range_text(self) -> str:
+        """The valid frame indices, for error messages."""
+        if self.path is None:
+            return (f"scene {self.name!r} has no camera path ([camera.path]): only frame 0 is valid")
+        return f"scene {self.name!r} has a camera path of {self.frames} frames: valid frames are 0..{self.frames - 1}"
+
+    def check_frame(self, i) -> int:
+        """``i`` as a frame index of this scene; SceneError (exit 2) naming the valid range otherwise."""
+        if isinstance(i, bool) or not isinstance(i, int) or not 0 <= i < self.frames:
+            raise SceneError(f"frame {i!r} is out of range: {self.frame_range_text()}")
+        return i
+
+    def at_frame(self, i: int) -> "SceneSpec":
+        """This scene with the camera of frame ``i`` (the resolution and clip planes are kept).
+        A scene without a camera path has only frame 0, which is the scene itself."""
+        self.check_frame(i)
+        if self.path is None or i == self.frame:
+            return self
+        k = self.path.key_at(i)
+        cam = replace(self.camera, position=k.position, target=k.target, fov=k.fov, up=k.up)
+        return replace(self, camera=cam, frame=i)
 
     @property
     def kind(self) -> str:
@@ -163,6 +266,11 @@ class SceneSpec:
                 d["camera"].pop(k)
         if not d["sdf"]:  # absent unless used: scenes without [[sdf]] hash as before the key existed
             d.pop("sdf")
+        if d["path"] is None:  # absent unless used: a scene without a camera path hashes as before paths existed
+            d.pop("path")
+            d.pop("frame")
+        # with a path, the whole path and the frame index are hashed: any change to the path makes
+        # every frame's stored reference stale
         for s in d["shapes"]:
             if s["filename"]:
                 p = Path(s["filename"])
@@ -203,7 +311,10 @@ SHADOW_MAP_MAX = 16384
 #: characters of a scene name: it names the scene's directory in the reference store
 SCENE_NAME_RE = r"[A-Za-z0-9_.-]+"
 TOP_KEYS = ("name", "description", "camera", "lights", "shapes", "sdf")
-CAMERA_KEYS = ("position", "target", "up", "fov", "resolution", "near", "far")
+CAMERA_KEYS = ("position", "target", "up", "fov", "resolution", "near", "far", "path")
+PATH_KEYS = ("frames", "interpolation", "keys", "cameras")
+PATH_KEY_KEYS = ("frame", "position", "target", "fov", "up")
+PATH_CAMERA_KEYS = ("position", "target", "fov", "up")
 _LIGHT_COMMON = ("name", "kind", "color", "power", "shadow_map", "depth_bits")
 #: the keys each light kind takes (README, "Scene format"); a key of another kind is refused
 LIGHT_KEYS = {
@@ -279,16 +390,84 @@ def _camera(path: str, data: dict, top: _Reader) -> Camera:
                f"far = {CAMERA_FAR:g})", clip.get("far", clip.get("near")))
     camera = Camera(position=c.vec("position"), target=c.vec("target"), up=c.vec("up", default=(0, 1, 0)),
                     fov=c.num("fov", default=40.0, lo=1.0, hi=170.0), resolution=tuple(res), **clip)
-    view = [a - b for a, b in zip(camera.target, camera.position)]
+    _check_view(c, camera.position, camera.target, camera.up, "camera.position")
+    return camera
+
+
+def _check_view(c: _Reader, position, target, up, where: str):
+    """A camera (static, a key or a frame of a path) must look somewhere and have a usable up."""
+    view = [a - b for a, b in zip(target, position)]
     if _norm(view) == 0:
-        c.fail("target", "a point different from camera.position", list(camera.target))
-    if _norm(camera.up) == 0:
-        c.fail("up", "a non-zero vector (the camera's up direction; the default is [0, 1, 0])", list(camera.up))
-    if _norm(_cross(camera.up, view)) <= 1e-6 * _norm(camera.up) * _norm(view):
+        c.fail("target", f"a point different from {where}", list(target))
+    if _norm(up) == 0:
+        c.fail("up", "a non-zero vector (the camera's up direction; the default is [0, 1, 0])", list(up))
+    if _norm(_cross(up, view)) <= 1e-6 * _norm(up) * _norm(view):
         c.fail("up", "a vector not parallel to the view direction target − position = "
                f"[{', '.join(f'{x:g}' for x in view)}] (up fixes the camera's roll, which a vector along the view "
-               "does not); e.g. [0, 0, 1] when looking straight down", list(camera.up))
-    return camera
+               "does not); e.g. [0, 0, 1] when looking straight down", list(up))
+
+
+def _camera_path(path: str, cam_table: dict, camera: Camera) -> CameraPath | None:
+    """``[camera.path]``: keyframes with interpolation, or an explicit list of cameras (README,
+    "Scene format"). Keys and cameras take position, target, fov and up, each defaulting to the
+    static ``[camera]``'s; every frame's camera is checked like the static one."""
+    if "path" not in cam_table:
+        return None
+    raw = cam_table["path"]
+    top = _Reader(path, "camera", cam_table)
+    if not isinstance(raw, dict):
+        top.fail("path", "a [camera.path] table (frames, interpolation, [[camera.path.keys]] or "
+                 "[[camera.path.cameras]])", raw)
+    r = _Reader(path, "camera.path", raw)
+    r.check_keys(PATH_KEYS, "[camera.path]")
+    if ("keys" in raw) == ("cameras" in raw):
+        r.fail("keys", "either [[camera.path.keys]] (keyframes: frame, position, target, fov, up) or "
+               "[[camera.path.cameras]] (one camera per frame), not " + ("both" if "keys" in raw else "neither"))
+    explicit = "cameras" in raw
+    items = raw["cameras" if explicit else "keys"]
+    label = "cameras" if explicit else "keys"
+    if not isinstance(items, list) or not items or not all(isinstance(x, dict) for x in items):
+        r.fail(label, f"a non-empty array of [[camera.path.{label}]] tables", items)
+    if "frames" in raw or not explicit:
+        v = raw.get("frames")
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= FRAMES_MAX:
+            r.fail("frames", f"an integer in 1..{FRAMES_MAX} (the number of frames of the camera path; a path of N "
+                   "frames has frames 0..N-1)" + (", or leave it out with [[camera.path.cameras]]" if explicit else ""),
+                   v)
+        frames = v
+    else:
+        frames = len(items)
+    if explicit and frames != len(items):
+        r.fail("frames", f"the number of [[camera.path.cameras]] tables ({len(items)}), one camera per frame; or "
+               "leave frames out", frames)
+    interp = r.str("interpolation", default="linear", choices=INTERPOLATIONS)
+    keys = []
+    for n, it in enumerate(items):
+        k = _Reader(path, f"camera.path.{label}[{n}]", it)
+        k.check_keys(PATH_CAMERA_KEYS if explicit else PATH_KEY_KEYS, f"[[camera.path.{label}]]")
+        if explicit:
+            fr = n
+        else:
+            fr = k.int("frame")
+            prev = keys[-1].frame if keys else None
+            if prev is None and fr != 0:
+                k.fail("frame", "0 (the first key of a camera path is at frame 0)", fr)
+            if prev is not None and fr <= prev:
+                k.fail("frame", f"a frame after the previous key's {prev} (keys are strictly increasing)", fr)
+            if fr > frames - 1:
+                k.fail("frame", f"a frame in 0..{frames - 1} (the path has frames = {frames})", fr)
+        keys.append(CameraKey(fr, k.vec("position", default=camera.position), k.vec("target", default=camera.target),
+                              k.num("fov", default=camera.fov, lo=1.0, hi=170.0), k.vec("up", default=camera.up)))
+        _check_view(k, keys[-1].position, keys[-1].target, keys[-1].up, "its position")
+    if keys[-1].frame != frames - 1:
+        r.fail("keys", f"a last key at frame {frames - 1} = frames − 1 (the path ends on a key); the last key is at "
+               f"frame {keys[-1].frame}", None)
+    cp = CameraPath(frames=frames, interpolation=interp, keys=tuple(keys), explicit=explicit)
+    if not explicit:
+        for i in range(frames):  # interpolated frames (a spline can overshoot): the same checks per frame
+            k = cp.key_at(i)
+            _check_view(_Reader(path, f"camera.path (frame {i})", {}), k.position, k.target, k.up, "its position")
+    return cp
 
 
 def _light(path: str, i: int, lt, names: set) -> LightSpec:
@@ -427,8 +606,12 @@ def parse(data: dict, path: str = "<scene>") -> SceneSpec:
         if meshy:
             top.fail("sdf", "no [[sdf]] objects in a scene with meshes or alpha-tested shapes (they have no "
                      f"signed distance field): {', '.join(meshy)}", None)
-    return SceneSpec(name=name, camera=camera, lights=tuple(lights), shapes=tuple(shapes),
-                     description=top.str("description", default=""), source=str(path), sdf=sdf)
+    cam_path = _camera_path(path, data["camera"], camera)
+    spec = SceneSpec(name=name, camera=camera, lights=tuple(lights), shapes=tuple(shapes),
+                     description=top.str("description", default=""), source=str(path), sdf=sdf, path=cam_path)
+    if cam_path is not None:  # a path scene is at frame 0 until moved (at_frame)
+        spec = replace(spec, frame=-1).at_frame(0)
+    return spec
 
 
 def _alpha_texture(r: _Reader, base: Path) -> str:
