@@ -24,6 +24,7 @@ import numpy as np
 from . import backend
 from .errors import InputError, ReferenceError_
 from .metrics import compare_shaded, penumbra_mask, pooled_visibility
+from .metrics.bands import by_distance, by_label
 from .metrics.temporal import shimmer_per_light
 from .reference import sdf_truth, store
 from .reference.truth import SEED_MAX, render_truth, target_missed
@@ -234,7 +235,26 @@ def technique_metrics(frame, truth, result) -> tuple[dict, dict, dict]:
                 for l in frame.lights if f"{l.name}.cascade" in result.aovs}
     if cascades:                              # csm's cascade AOV, coloured as [Buljan 2020, Slika 4.3/4.5]
         imgs["cascade"] = cascades
+    aliasing = {l.name: result.aovs[f"{l.name}.aliasing"] for l in frame.lights if f"{l.name}.aliasing" in result.aovs}
+    if aliasing:                              # texels per pixel, [Buljan 2020, §2.5]: shown as a heat map
+        imgs["aliasing"] = aliasing
     return m, per_light, imgs
+
+
+def error_bands(frame, truth, result) -> dict:
+    """Per light: the visibility error by distance band from the camera
+    (:func:`shadowlab.metrics.bands.by_distance`) and, for a technique with a ``cascade`` AOV, by
+    cascade (:func:`~shadowlab.metrics.bands.by_label`): {light: {"distance": rows, "cascade": rows}}."""
+    out = {}
+    for l in frame.lights:
+        v = frame.image(result.visibility[l.name])
+        tv = truth.lights[l.name].V
+        valid = truth.mask & frame.lit_mask(l.name)
+        d = {"distance": by_distance(v, tv, truth.view_depth, valid)}
+        if f"{l.name}.cascade" in result.aovs:
+            d["cascade"] = by_label(v, tv, result.aovs[f"{l.name}.cascade"], valid)
+        out[l.name] = d
+    return out
 
 
 def _truth_of(sc, scene: str, base, render_missing: bool, progress: bool):
@@ -271,7 +291,7 @@ def _compare_at(sc, scene, techniques, overrides, base, render_missing, progress
     for n, (res, p, timing) in results.items():
         m, per_light, imgs = technique_metrics(frame, truth, res)
         run["techniques"][n] = {"params": p, **timing, "metrics": m, "per_light": per_light,
-                                "stats": res.stats}
+                                "stats": res.stats, "bands": error_bands(frame, truth, res)}
         run["images"]["techniques"][n] = imgs
     return run, frame, results
 

@@ -12,6 +12,8 @@ On the built-in ``street`` scene, every figure from one run:
 * **quality at equal total texels** against the truth: the number of cascades (1 … 6) and the
   split λ (0 … 1) with T = 3·1024² texels shared by the cascades, and ``csm`` against one
   scene-fitted map (``pcf``) of the same T;
+* **temporal stability** along ``boulevard``'s camera path: the shimmer of the sphere and box fits,
+  with and without whole-texel snapping, beside one scene-fitted map and the truth's own;
 * **error against texels**: a resolution sweep per cascade ([Buljan 2020, §2.5]: 512 … 8192; the
   sizes this run reached are listed), with the error by distance band from the camera
   (:func:`shadowlab.metrics.bands.by_distance`) and per cascade (:func:`~shadowlab.metrics.bands.by_label`).
@@ -33,13 +35,20 @@ import numpy as np
 from .. import backend
 from ..io.jsonio import write_json_atomic
 from ..metrics.bands import by_distance, by_label
-from ..pipeline import load_scene, reference, technique_metrics
+from ..pipeline import load_scene, reference, shimmer, technique_metrics
 from ..reference import store
 from ..render.frame import make_frame
 from ..techniques import base
 from .timing import timed
 
 SCENE = "street"
+PATH_SCENE = "boulevard"
+#: the fits compared for temporal stability: (label, csm parameters)
+SHIMMER_CONFIGS = (("sphere fit, snapped (stable CSM)", {"fit": "sphere", "snap": True}),
+                   ("sphere fit, not snapped", {"fit": "sphere", "snap": False}),
+                   ("box fit, snapped", {"fit": "box", "snap": True}),
+                   ("box fit, not snapped", {"fit": "box", "snap": False}),
+                   ("one scene-fitted map (fit = scene, 1 cascade)", {"fit": "scene", "cascades": 1}))
 LIGHT = "sun"
 #: [Buljan 2020, §4.5]: FPS at 1920×1080, three cascades (1024² unless varied, PCF kernel 1)
 SOURCE_FPS = {"map_size": {512: 158, 1024: 146, 2048: 103}, "kernel": {1: 146, 3: 121, 5: 86, 7: 61},
@@ -135,6 +144,25 @@ def bench_quality(res=(256, 144), total=3 * 1024 * 1024, counts=(1, 2, 3, 4, 5, 
                                  "normal and light-space arrays of 67 M texels in float64)"}
 
 
+def bench_shimmer(res=(256, 144), resolution: int = 1024, frames=None) -> dict:
+    """Shimmer (:func:`shadowlab.pipeline.shimmer`) of each fit of :data:`SHIMMER_CONFIGS` along
+    the camera path of ``boulevard``, at frame 0's points, and the same split by the path's two
+    halves (sub-texel steps, then multi-texel steps)."""
+    sc0 = load_scene(PATH_SCENE, res, frame=0)
+    n = sc0.spec.frames if frames is None else int(frames)
+    scenes = [sc0] + [sc0.at_frame(i) for i in range(1, n)]
+    fixed = make_frame(sc0)
+    t = base.get("csm")
+    results, techs, params = {}, {}, {}
+    for label, cfg in SHIMMER_CONFIGS:
+        p = t.resolve({**cfg, "resolution": resolution})
+        results[label] = (_render(t, fixed, p), p)
+        techs[label], params[label] = t, cfg
+    out = shimmer(scenes, fixed, results, techniques=techs)
+    return {"scene": PATH_SCENE, "resolution": list(res), "map_resolution": resolution, "frames": n,
+            "configs": params, "shimmer": out}
+
+
 def _ratio_row(label, t, t_base, fps, fps_base) -> str:
     return (f"| {label} | {1e3 * t['shadow_pass_s']:.1f} | {1e3 * t['lookup_s']:.1f} | {1e3 * t['frame_s']:.1f} | "
             f"{t_base / t['frame_s']:.2f} | {fps} | {fps / fps_base:.2f} |")
@@ -195,6 +223,17 @@ def markdown(res: dict) -> str:
                      f"{r['leak_rate']:.4f} | {byc} |")
     if q["sweep_not_run"]:
         lines += ["", f"Not run: {', '.join(f'{s}²' for s in q['sweep_not_run'])} ({q['sweep_not_run_why']})."]
+    sh = res.get("shimmer")
+    if sh:
+        tr = sh["shimmer"]["truth"]
+        lines += ["", f"## Temporal stability ({sh['scene']}, {sh['frames']} frames, {sh['resolution'][0]}×"
+                      f"{sh['resolution'][1]}, {sh['map_resolution']}² per cascade)", "",
+                  f"|V_t(x) − V_(t−1)(x)| at frame 0's points over the path's frame pairs. Truth: "
+                  f"{tr['pooled']['mean'] if tr['pooled'] else 'n/a'} ({tr['why']}).", "",
+                  "| fit | mean | 99th percentile | max |", "|---|---|---|---|"]
+        for label, d in sh["shimmer"]["techniques"].items():
+            pl = d["pooled"]
+            lines.append(f"| {label} | {pl['mean']:.5f} | {pl['p99']:.4f} | {pl['max']:.4f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -207,9 +246,11 @@ def run(out: Path, quick: bool = False) -> Path:
         res["cost"] = bench_cost(res=(480, 270), map_sizes=(256, 512, 1024), kernels=(1, 3), repeats=1)
         res["quality"] = bench_quality(res=(128, 72), total=3 * 256 * 256, counts=(1, 3), lambdas=(0.0, 0.6),
                                        sweep=(256, 512), quick=True)
+        res["shimmer"] = bench_shimmer(res=(128, 72), resolution=256, frames=4)
     else:
         res["cost"] = bench_cost()
         res["quality"] = bench_quality()
+        res["shimmer"] = bench_shimmer()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "cascades.json", res)

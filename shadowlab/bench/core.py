@@ -35,6 +35,7 @@ from ..render.frame import make_frame
 from ..render.shading import sample_light
 from ..scene import load
 from ..techniques import base
+from .cascades import run as cascades_bench
 from .fit import markdown as fit_markdown
 from .fit import measure as bench_fit
 from .sdf import run as sdf_bench
@@ -256,17 +257,27 @@ def _markdown(res: dict) -> str:
         lines += fit_markdown(res["fit"])
     if res.get("sdf"):
         lines += ["", f"SDF soft shadows ([Bán 2019, ch. 6]): see `{Path(res['sdf']).name}` (`shadowlab bench --only sdf`)."]
+    if res.get("cascades"):
+        lines += ["", f"Cascaded shadow maps ([Buljan 2020, ch. 4]): see `{Path(res['cascades']).name}` "
+                      "(`shadowlab bench --only cascades`)."]
     return "\n".join(lines) + "\n"
+
+
+#: the parts ``--only`` runs alone
+ONLY = ("sdf", "cascades")
 
 
 def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
     """Run every benchmark; write ``out/bench.json`` and ``out/bench.md``; return the .md path.
+    ``only="cascades"``: just :mod:`shadowlab.bench.cascades` (``out/cascades.json``, ``out/cascades.md``);
     ``only="sdf"``: just the SDF soft-shadow bench (:mod:`shadowlab.bench.sdf`: ``out/sdf.json``,
     ``out/sdf.md``), which the full run also writes."""
-    if only is not None and only != "sdf":
-        raise InputError(f"--only {only!r}: expected sdf (or no --only for every benchmark)")
+    if only is not None and only not in ONLY:
+        raise InputError(f"--only {only!r}: expected one of {', '.join(ONLY)} (or no --only for every benchmark)")
     if only == "sdf":
         return sdf_bench(Path(out), quick=quick)
+    if only == "cascades":
+        return cascades_bench(Path(out), quick=quick)
     backend.init()
     res = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": backend.machine_info(),
            "quick": quick}
@@ -277,6 +288,7 @@ def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
     res["sweep"] = bench_sweep(values=5 if quick else 50)
     res["fit"] = bench_fit(quick)  # pcss.light_scale: Adam vs grid search (the fitting goals)
     res["sdf"] = str(sdf_bench(Path(out), quick=quick))  # [Bán 2019, ch. 6]: written to sdf.json / sdf.md
+    res["cascades"] = str(cascades_bench(Path(out), quick=quick))  # [Buljan 2020, ch. 4]: cascades.json / .md
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "bench.json", res)

@@ -207,6 +207,9 @@ def validate(run: Mapping, need_images: bool = True) -> dict:
         if "cascade" in d:                  # optional: a cascade-index AOV coloured by images.cascade_colours
             cas = _mapping(d["cascade"], f"{where}.cascade")
             out["cascade"] = {ln: _image(cas[ln], f"{where}.cascade.{ln}", hw, (3,)) for ln in lights if ln in cas}
+        if "aliasing" in d:                 # optional: shadow-map texel / pixel footprint per pixel (csm)
+            al = _mapping(d["aliasing"], f"{where}.aliasing")
+            out["aliasing"] = {ln: _image(al[ln], f"{where}.aliasing.{ln}", hw, (0,)) for ln in lights if ln in al}
         return out
 
     out = {"truth": frame(_get(imgs, "truth", "run.images"), "run.images.truth")}
@@ -388,6 +391,44 @@ def stats_tables(stats) -> list[tuple[str, list[str], list[list[str]]]]:
     return out
 
 
+_BAND_KEYS = ("pixels", "rmse", "rmse_penumbra", "leak_rate", "overdark_rate")
+
+
+def band_tables(t: Mapping) -> list[tuple[str, list[str], list[list[str]]]]:
+    """One technique's visibility error by distance band and by cascade (``t["bands"]``, see
+    :func:`shadowlab.pipeline.error_bands`) as tables ``(title, columns, rows)``, per light.
+
+    >>> t = {"bands": {"sun": {"distance": [{"lo": 0.0, "hi": 10.0, "pixels": 4, "rmse": 0.5, "rmse_penumbra": 0.25,
+    ...                                      "leak_rate": 0.0, "overdark_rate": 0.5}]}}}
+    >>> band_tables(t)  # doctest: +NORMALIZE_WHITESPACE
+    [('sun: visibility error by distance from the camera (m)',
+      ['distance (m)', 'pixels', 'rmse', 'rmse_penumbra', 'leak_rate', 'overdark_rate'],
+      [['0–10', '4', '0.5', '0.25', '0', '0.5']])]
+    """
+    out = []
+    for ln, d in (t.get("bands") or {}).items():
+        for kind, label, head in (("distance", "distance from the camera (m)", "distance (m)"),
+                                  ("cascade", "cascade (−1: none)", "cascade")):
+            rows = d.get(kind) or []
+            if rows:
+                keyf = (lambda r: f"{_fmt(r['lo'])}–{_fmt(r['hi'])}") if kind == "distance" else (lambda r: str(r["label"]))
+                out.append((f"{ln}: visibility error by {label}", [head, *_BAND_KEYS],
+                            [[keyf(r), *[_fmt(r[k]) for k in _BAND_KEYS]] for r in rows]))
+    return out
+
+
+def bands_markdown(run: Mapping) -> str:
+    """Markdown of :func:`band_tables` for every technique of the run."""
+    parts = []
+    for name, t in run["techniques"].items():
+        for title, cols, rows in band_tables(t):
+            parts += [f"### {_md_escape(name)}: {_md_escape(title)}", "",
+                      "| " + " | ".join(_md_escape(c) for c in cols) + " |", "|" + "---|" * len(cols)]
+            parts += ["| " + " | ".join(_md_escape(c) for c in r) + " |" for r in rows]
+            parts.append("")
+    return "\n".join(parts)
+
+
 def stats_markdown(run: Mapping) -> str:
     """Markdown of :func:`stats_tables` for every technique of the run that has them."""
     parts = []
@@ -418,6 +459,12 @@ def _legend(scale: float) -> str:
         '<img class="cbar" src="img/colorbar.png" alt="colour scale">'
         f'<div class="ticks"><span>&minus;{s}</span><span>0</span><span>+{s}</span></div>'
     )
+
+
+def _ratio_legend(scale: float) -> str:
+    s = _fmt(scale)
+    return ('<img class="cbar" src="img/colorbar.png" alt="colour scale">'
+            f'<div class="ticks"><span>2<sup>&minus;{s}</sup></span><span>1</span><span>2<sup>{s}</sup></span></div>')
 
 
 def _metric_line(d: Mapping) -> str:
@@ -531,6 +578,15 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
                 p.append(f'<tr><th class="row"><b>{_e(ln)}</b> cascades<br>red, green, blue, … = cascade 0, 1, 2, …'
                          f" (blended in the bands, × visibility)</th><td>{_img_tag(cf, f'{name} cascades {ln}')}"
                          "</td><td></td><td></td></tr>")
+            if ln in ti.get("aliasing", {}):
+                a = ti["aliasing"][ln]
+                la = np.where(a > 0, np.log2(np.maximum(a, 1e-12)), np.nan)  # grey: no cascade
+                sc = max(1.0, float(np.ceil(_im.error_scale(la))))
+                af = put(f"{tag}_aliasing_{j}_{_slug(ln)}.png", _im.encode_png(_im.signed_error_heatmap(la, sc)))
+                p.append(f'<tr><th class="row"><b>{_e(ln)}</b> aliasing m̃<br>shadow-map texel / pixel footprint, '
+                         "log₂: red = a texel covers several pixels (undersampled), blue = several texels per "
+                         f"pixel, grey = no cascade</th><td>{_img_tag(af, f'{name} aliasing {ln}')}{_ratio_legend(sc)}</td>"
+                         "<td></td><td></td></tr>")
         sf = put(f"{tag}_shaded.png", _im.shaded_png(ti["shaded"], exposure))
         sef = put(f"{tag}_shaded_err.png", _im.encode_png(_im.signed_error_heatmap(shaded_err[name], shaded_scale)))
         p.append(
@@ -540,6 +596,11 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
             f"<td>{_img_tag(sef, f'signed error {name} shaded')}{_legend(shaded_scale)}</td></tr>"
         )
         p.append("</table>")
+        for title, cols, rows in band_tables(t):
+            p.append(f'<p class="note">{_e(title)}</p><table class="metrics"><thead><tr>'
+                     + "".join(f"<th>{_e(c)}</th>" for c in cols) + "</tr></thead><tbody>"
+                     + "".join("<tr>" + "".join(f"<td>{_e(c)}</td>" for c in r) + "</tr>" for r in rows)
+                     + "</tbody></table>")
         for title, cols, rows in stats_tables(t.get("stats") or {}):
             p.append(f'<p class="note">stats per {_e(title[:-1])}</p><table class="metrics"><thead><tr>'
                      + "".join(f"<th>{_e(c)}</th>" for c in cols) + "</tr></thead><tbody>"
@@ -620,6 +681,9 @@ def build(out_dir, run: Mapping, *, force: bool = False, protected=(), kind: str
     st_md = stats_markdown(run)
     if st_md:
         md_text += "\n## Stats per light and map\n\n" + st_md
+    b_md = bands_markdown(run)
+    if b_md:
+        md_text += "\n## Visibility error by distance and cascade\n\n" + b_md
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.building-"))
