@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shadowlab import backend
 from shadowlab.reference import store
 from shadowlab.render.frame import make_frame
 from shadowlab.render.gbuffer import gbuffer
@@ -81,14 +80,16 @@ def test_thin_casters(name, scenes):
         if s.type == "cube":
             return 2 * min(s.scale)
         return math.inf  # rectangles and disks are the ground, not casters
-    thin = [s.name for s in sc.spec.shapes if thickness(s) < min(0.1, sc.radius / 100)]
-    assert len(thin) >= 5, thin
-    # thin casters stand off the ground (poles, rails, wires, signs), where their shadows are cast
-    boxes = dict(zip([n for n in sc.shape_names if not n.startswith("light_")], sc.shape_boxes))
-    assert max(boxes[n][1][1] for n in thin) > 2.0
+    def top(s):  # the highest point of a cylinder or an unrotated-in-height cube
+        return max(s.p0[1], s.p1[1]) if s.type == "cylinder" else s.translate[1] + s.scale[1]
+    thin = [s for s in sc.spec.shapes if thickness(s) < min(0.1, sc.radius / 100)]
+    assert len(thin) >= 5, [s.name for s in thin]
+    # some thin casters are high off the ground (wires, cables, signs), so their shadows fall far from them
+    assert max(top(s) for s in thin) > 2.0
+    assert any(s.type == "cylinder" and abs(s.p0[1] - s.p1[1]) < 1e-9 and top(s) > 2.0 for s in thin)  # a wire
 
 
-def test_committed_street_reference_loads_and_hard_compares():
+def test_committed_street_reference_loads_and_hard_compares(mitsuba_backend):
     sc = load("street")
     truth, meta = store.load(sc.spec, sc.resolution, base=REFS)      # not stale, checksum verified
     assert meta["scene_hash"] == sc.spec.digest() and meta["target_missed"]["pixels"] == 0
