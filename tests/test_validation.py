@@ -363,7 +363,8 @@ def test_a_saved_preset_loads(tmp_path):
 def test_every_builtin_scene_loads_with_the_hash_of_its_committed_reference():
     for n in builtin_names():
         spec = load_spec(resolve(n))
-        meta = json.loads((ROOT / "references" / n / "128x128" / "meta.json").read_text())
+        W, H = spec.camera.resolution  # each scene's reference is committed at its default resolution
+        meta = json.loads((ROOT / "references" / n / f"{W}x{H}" / "meta.json").read_text())
         assert spec.digest() == meta["scene_hash"], n
 
 
