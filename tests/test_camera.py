@@ -8,6 +8,7 @@ import pytest
 
 from lightview_scene import SCENE
 from shadowlab.errors import SceneError
+from shadowlab.reference import store
 from shadowlab.render.camera import Camera
 from shadowlab.scene import parse
 from shadowlab.scene.spec import CAMERA_FAR, CAMERA_NEAR
@@ -136,9 +137,11 @@ def test_stored_references_keep_matching_their_scenes():
         except SceneError:  # a reference of a scene that is not built in (bench set-ups)
             continue
         meta = json.loads(m.read_text())
-        W, H = (int(x) for x in m.parent.name.split("x"))
+        (W, H), frame = store.parse_dir_name(m.parent.name)   # <W>x<H> or <W>x<H>-f<NNNN>
         if (W, H) != tuple(spec.camera.resolution):
             continue
+        if frame is not None:
+            spec = spec.at_frame(frame)
         assert meta["scene_hash"] == spec.digest(), name
         checked += 1
     assert checked >= 5

@@ -21,6 +21,7 @@ from shadowlab.cli import main as cli_main
 from shadowlab.errors import InputError, SceneError
 from shadowlab.fit import preset as preset_mod
 from shadowlab.gate.gatefile import load_gate_file, parse_gate_file
+from shadowlab.reference import store
 from shadowlab.reference.truth import SEED_MAX
 from shadowlab.scene._reader import did_you_mean
 from shadowlab.scene.spec import SHADOW_MAP_MAX, builtin_names, load_spec, parse, resolve
@@ -363,8 +364,9 @@ def test_a_saved_preset_loads(tmp_path):
 def test_every_builtin_scene_loads_with_the_hash_of_its_committed_reference():
     for n in builtin_names():
         spec = load_spec(resolve(n))
-        W, H = spec.camera.resolution  # each scene's reference is committed at its default resolution
-        meta = json.loads((ROOT / "references" / n / f"{W}x{H}" / "meta.json").read_text())
+        # committed at the scene's default resolution; a camera path's scene is at frame 0, stored per frame
+        d = store.path_for(n, spec.camera.resolution, ROOT / "references", frame=spec.frame)
+        meta = json.loads((d / "meta.json").read_text())
         assert spec.digest() == meta["scene_hash"], n
 
 
