@@ -235,8 +235,8 @@ def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a 
         force: bool = typer.Option(False, "--force", help="Replace a --save-preset file and write into an --out "
                                    "directory that shadowlab did not create."),
         frame: Optional[int] = FrameOpt,
-        frames: Optional[str] = typer.Option(None, "--frames", help="N:N, one frame of the camera path (a fit takes "
-                                             "one frame; fit several with one --frame each)."),
+        frames: Optional[str] = typer.Option(None, "--frames", help="A:B, frames of the camera path (both ends "
+                                             "included): one preset minimising the mean loss over them."),
         variant: Optional[str] = VariantOpt):
     """Fit technique parameters to the ground truth; write DIR/fit.json, index.html, summary.md, preset.toml."""
     _init(variant)

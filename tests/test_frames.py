@@ -185,7 +185,7 @@ def test_cli_frame_ranges_exit_2(stored, capsys, monkeypatch):
                          (["compare", "contact", "--frame", "1", "-t", "hard"], "only frame 0 is valid"),
                          (["compare", str(p), "--frames", "2:1", "-t", "hard"], "0 <= A <= B"),
                          (["compare", str(p), "--frames", "1", "-t", "hard"], "expected A:B"),
-                         (["fit", str(p), "-t", "hard", "--frames", "0:1"], "fit takes one frame")]:
+                         (["fit", str(p), "-t", "hard", "--frames", "0:5"], "valid frames are 0..2")]:
         assert cli.main(args) == 2, args
         assert needle in capsys.readouterr().err
 
@@ -284,3 +284,26 @@ def test_gate_frames(stored, tmp_path):
     g.write_text(g.read_text().replace('frames = "1:2"', 'frames = "1:3"'))
     with pytest.raises(InputError, match=r"valid frames are 0\.\.2"):
         load_gate_file(g)
+
+
+def test_a_fit_over_frames_minimises_the_mean_of_the_frames_losses(stored):
+    """``fit --frames A:B``: one preset for the path; its objective is the mean of each frame's
+    objective against that frame's own truth (checked against single-frame objectives)."""
+    from shadowlab.fit import run as R
+    from shadowlab.fit.objective import Objective
+    p, base, _ = stored
+    run = R.fit(str(p), "hard", params=["slope_scaled_depth_bias"], method="golden", loss="rmse", frames="0:2",
+                base=base, budget=R.Budget(evals=4))
+    assert run["frames"] == [0, 1, 2]
+    r = run["techniques"]["hard"]
+    start = {"slope_scaled_depth_bias": r["params"]["slope_scaled_depth_bias"]["start"]}
+    singles = []
+    for sc, truth, meta, frame in R.prepare_frames(str(p), None, base, frames="0:2"):
+        o = Objective(frame, truth, tbase.get("hard"), "rmse")
+        singles.append((o.value(start), o.noise_floor))
+    assert r["objective_before"] == pytest.approx(np.mean([v for v, _ in singles]), rel=1e-6)
+    assert r["loss_before"] == pytest.approx(math.sqrt(max(np.mean([v - f for v, f in singles]), 0.0)), rel=1e-6)
+    assert r["objective_after"] <= r["objective_before"] and r["loss"]["frames"] == 3
+    one = R.fit(str(p), "hard", params=["slope_scaled_depth_bias"], method="golden", loss="rmse", frame=1,
+                base=base, budget=R.Budget(evals=4))["techniques"]["hard"]
+    assert one["objective_before"] == pytest.approx(singles[1][0], rel=1e-6)

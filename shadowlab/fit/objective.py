@@ -160,3 +160,49 @@ class Objective:
         else:
             d["noise_floor_subtracted"] = False
         return d
+
+
+class MeanObjective:
+    """The mean of several :class:`Objective` s of one technique (the frames of a camera path):
+    one preset for the whole path. The objective is the mean of the frames' objectives (each a
+    mean over its own mask), the reported loss √max(mean objective − mean noise floor, 0);
+    ``evaluations`` counts every frame's render."""
+
+    def __init__(self, objectives: list):
+        if not objectives:
+            raise ValueError("MeanObjective needs at least one objective")
+        self.parts = list(objectives)
+        first = self.parts[0]
+        self.frame, self.truth, self.tech, self.loss, self.fixed = first.frame, first.truth, first.tech, first.loss, first.fixed
+        self.lights = first.lights
+        self.pixels = sum(o.pixels for o in self.parts)
+        self.noise_floor = float(np.mean([o.noise_floor for o in self.parts]))
+        self.gradients = 0
+
+    @property
+    def evaluations(self) -> int:
+        return sum(o.evaluations for o in self.parts)
+
+    def loss_dr(self, values: dict):
+        """Mean of the frames' Dr.Jit losses (the first frame's render is returned with it)."""
+        out, first = None, None
+        for o in self.parts:
+            loss, res = o.loss_dr(values)
+            out, first = (loss, res) if out is None else (out + loss, first)
+        return out * (1.0 / len(self.parts)), first
+
+    def value(self, values: dict) -> float:
+        return float(np.mean([o.value(values) for o in self.parts]))
+
+    def report(self, objective: float) -> float:
+        if self.loss == "flip":
+            return float(objective)
+        return float(np.sqrt(max(objective - self.noise_floor, 0.0)))
+
+    def describe(self) -> dict:
+        d = self.parts[0].describe()
+        d.update(pixels=self.pixels, frames=len(self.parts),
+                 description=d["description"] + f"; mean over {len(self.parts)} frames")
+        if self.loss != "flip":
+            d["noise_floor_rmse"] = float(np.sqrt(self.noise_floor))
+        return d

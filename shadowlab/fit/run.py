@@ -24,7 +24,7 @@ from ..techniques import base as tbase
 from . import preset as P
 from . import report as R
 from . import search as S
-from .objective import DIFFERENTIABLE_LOSSES, KernelCounter, Objective, check_loss
+from .objective import DIFFERENTIABLE_LOSSES, KernelCounter, MeanObjective, Objective, check_loss
 
 #: parameters ``--all`` (and ``fit`` without ``--params``) fits for techniques without
 #: differentiable parameters; every other technique fits its differentiable parameters
@@ -245,9 +245,25 @@ def plan(tech_name: str, frame, *, params=None, method="auto", loss="rmse_penumb
     return Plan(tech=tech, names=names, dims=dims, start=start, fixed=fixed, loss=loss, method=method)
 
 
-def execute(p: Plan, frame, truth, budget: Budget) -> dict:
-    """Run one planned fit; returns the result dict (JSON-able, plus ``images``: numpy)."""
-    obj = Objective(frame, truth, p.tech, p.loss, fixed=p.fixed)
+def _metrics(p: Plan, values: dict, pairs) -> tuple:
+    """(metrics, per_light, images, render) of ``values`` on the first (frame, truth) of ``pairs``,
+    with every metric replaced by its mean over all of them (the guards of several frames)."""
+    res = p.tech.render(pairs[0][0], {**p.fixed, **values})
+    m, pl, img = technique_metrics(pairs[0][0], pairs[0][1], res)
+    if len(pairs) > 1:
+        ms = [m] + [technique_metrics(f, t, p.tech.render(f, {**p.fixed, **values}))[0] for f, t in pairs[1:]]
+        m = {k: float(np.mean([x[k] for x in ms])) if all(x.get(k) is not None for x in ms) else None for k in m}
+    return m, pl, img, res
+
+
+def execute(p: Plan, frame, truth, budget: Budget, more=()) -> dict:
+    """Run one planned fit; returns the result dict (JSON-able, plus ``images``: numpy).
+    ``more``: further (frame, truth) pairs (frames of a camera path) fitted together with
+    ``frame``: the objective is the mean over all of them (:class:`MeanObjective`), the guards
+    compare metrics averaged over them, the images are ``frame``'s."""
+    pairs = [(frame, truth), *more]
+    objs = [Objective(f, t, p.tech, p.loss, fixed=p.fixed) for f, t in pairs]
+    obj = objs[0] if len(objs) == 1 else MeanObjective(objs)
     with KernelCounter() as counter:
         dr.sync_thread()
         t0 = time.perf_counter()
@@ -269,10 +285,8 @@ def execute(p: Plan, frame, truth, budget: Budget) -> dict:
     hist = s.history
     evaluations, gradients = obj.evaluations, obj.gradients
     # the report's metrics and images (outside the search: not counted)
-    res_b = p.tech.render(frame, {**p.fixed, **p.start})
-    res_a = p.tech.render(frame, {**p.fixed, **fitted})
-    m_b, pl_b, img_b = technique_metrics(frame, truth, res_b)
-    m_a, pl_a, img_a = technique_metrics(frame, truth, res_a)
+    m_b, pl_b, img_b, res_b = _metrics(p, p.start, pairs)
+    m_a, pl_a, img_a, res_a = _metrics(p, fitted, pairs)
     # never end worse than the start as ``compare`` measures it: these renders are exactly what
     # ``compare --preset`` renders (same frame, plain values, the preset's repr round trip)
     guards = guard_metrics(p.loss, frame)
@@ -288,8 +302,7 @@ def execute(p: Plan, frame, truth, budget: Budget) -> dict:
             o = obj.value(cand)                  # outside the search: not counted
             if o > obj_before:
                 continue
-            res_c = p.tech.render(frame, {**p.fixed, **cand})
-            m_c, pl_c, img_c = technique_metrics(frame, truth, res_c)
+            m_c, pl_c, img_c, res_c = _metrics(p, cand, pairs)
             if not any(_worse(m_c.get(g), m_b.get(g)) for g in guards):
                 found = (cand, o, res_c, m_c, pl_c, img_c)
                 break
@@ -334,19 +347,23 @@ def execute(p: Plan, frame, truth, budget: Budget) -> dict:
 def prepare(scene: str, resolution=None, base: Path | None = None, frame: int | None = None, frames=None):
     """(scene, truth, meta, frame): the stored reference is required (never rendered here);
     a missing or stale one is a ReferenceError_ (exit 2) naming the command that makes it.
-    ``frame`` / ``frames``: the camera path frame fitted. A fit takes one frame: ``frames`` A:B
-    with A < B is refused (exit 2; fit each frame with ``--frame``), since the searches optimise
-    the loss of one FrameContext."""
-    sc = load_scene(scene, resolution)
-    sel = frame_list(sc.spec, frame, frames)
-    if sel and len(sel) > 1:
-        raise InputError(f"fit takes one frame of the camera path; --frames {sel[0]}:{sel[-1]} selects {len(sel)}: "
-                         f"fit one frame with --frame N (0..{sc.spec.frames - 1}) or give --frames N:N")
-    if sel:
-        sc = sc.at_frame(sel[0])
-    truth, meta = store.load(sc.spec, sc.resolution, base)
-    frame = make_frame(sc, ss=int(meta.get("supersampling", 1)), seed=int(meta.get("seed", 0)))
-    return sc, truth, meta, frame
+    ``frame`` / ``frames``: the camera path frame (the first of ``frames``; see
+    :func:`prepare_frames` for all of them)."""
+    return prepare_frames(scene, resolution, base, frame=frame, frames=frames)[0]
+
+
+def prepare_frames(scene: str, resolution=None, base: Path | None = None, frame: int | None = None,
+                   frames=None) -> list:
+    """[(scene, truth, meta, frame)] of every selected frame of the camera path (one entry
+    without ``frame`` / ``frames``): each frame's stored reference is required."""
+    sc0 = load_scene(scene, resolution)
+    sel = frame_list(sc0.spec, frame, frames)
+    out = []
+    for i in (sel or [None]):
+        sc = sc0 if i is None else sc0.at_frame(i)
+        truth, meta = store.load(sc.spec, sc.resolution, base)
+        out.append((sc, truth, meta, make_frame(sc, ss=int(meta.get("supersampling", 1)), seed=int(meta.get("seed", 0)))))
+    return out
 
 
 def fit(scene: str, technique: str | None = None, *, params=None, method: str = "auto", loss: str | None = None,
@@ -378,7 +395,9 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
         R.check_out(Path(out), force, protected)
     if save_preset is not None:
         P.check_writable(save_preset, force, protected)
-    sc, truth, meta, frame = prepare(scene, resolution, base, frame=frame, frames=frames)
+    prepared = prepare_frames(scene, resolution, base, frame=frame, frames=frames)
+    sc, truth, meta, frame = prepared[0]
+    more = [(f, t) for _, t, _, f in prepared[1:]]
     plans, skipped = {}, {}
     for t in techs:
         s = {**(pre.values.get(t, {}) if pre else {}), **sets_by.get(t, {})}
@@ -396,7 +415,7 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
         if echo:
             echo(f"fitting {t}: {', '.join(f'{d.name} ({d.method})' for d in p.dims)} ...")
         try:
-            results[t] = execute(p, frame, truth, budget)
+            results[t] = execute(p, frame, truth, budget, more)
         except ShadowlabError as e:               # e.g. a technique that cannot render this scene
             if not all_techniques:
                 raise
@@ -404,6 +423,7 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
     if not results:
         raise InputError("no technique could be fitted: " + "; ".join(f"{k}: {v}" for k, v in skipped.items()))
     run = {"scene": sc.name, "resolution": list(sc.resolution), **({} if sc.frame is None else {"frame": sc.frame}),
+           **({"frames": [s_.frame for s_, *_ in prepared]} if len(prepared) > 1 else {}),
            "mode": "all" if all_techniques else "one",
            "method": method, "loss": loss or ", ".join(sorted({p.loss for p in plans.values()})),
            "budget": budget.__dict__,
