@@ -2,7 +2,7 @@
 
 ``python -m shadowlab.docs`` rewrites the marked sections of README.md in place
 (``<!-- NAME:begin -->`` … ``<!-- NAME:end -->``); ``--check`` exits 1 if they are stale.
-The bench section is copied from reports/bench/bench.md (and sdf.md after it) when that file exists.
+The bench section is copied from reports/bench/bench.md (and sdf.md, cascades.md after it) when that file exists.
 """
 
 from __future__ import annotations
@@ -40,9 +40,10 @@ def bench_section() -> str | None:
     if not p.exists():
         return None
     text = p.read_text().strip()
-    sdf = p.with_name("sdf.md")
-    if sdf.exists():
-        text += "\n\n" + sdf.read_text().strip()
+    for part in ("sdf.md", "cascades.md"):
+        f = p.with_name(part)
+        if f.exists():
+            text += "\n\n" + f.read_text().strip()
     # the README's section is "## Benchmarks": its title one level below, its tables two
     return re.sub(r"^(#+) ", lambda m: "#" * (len(m.group(1)) + 2) + " ", text, flags=re.M)
 
