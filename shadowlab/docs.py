@@ -2,7 +2,7 @@
 
 ``python -m shadowlab.docs`` rewrites the marked sections of README.md in place
 (``<!-- NAME:begin -->`` … ``<!-- NAME:end -->``); ``--check`` exits 1 if they are stale.
-The bench section is copied from reports/bench/bench.md (and sdf.md, cascades.md after it) when that file exists.
+The bench section is copied from reports/bench/bench.md (and sdf.md, cascades.md and cascades-cuda.md, a GPU run of the cascades part, after it) when that file exists.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def bench_section() -> str | None:
     if not p.exists():
         return None
     text = p.read_text().strip()
-    for part in ("sdf.md", "cascades.md"):
+    for part in ("sdf.md", "cascades.md", "cascades-cuda.md"):
         f = p.with_name(part)
         if f.exists():
             text += "\n\n" + f.read_text().strip()

@@ -29,6 +29,7 @@ import numpy as np
 from .. import backend
 from ..errors import InputError
 from ..io.jsonio import write_json_atomic
+from ..io.png import write_bytes_atomic
 from ..pipeline import load_scene
 from ..reference.truth import visibility
 from ..render.frame import make_frame
@@ -292,8 +293,4 @@ def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "bench.json", res)
-    md = out / "bench.md"
-    tmp = md.with_suffix(".md.tmp")
-    tmp.write_text(_markdown(res))
-    tmp.replace(md)
-    return md
+    return write_bytes_atomic(out / "bench.md", _markdown(res).encode())

@@ -137,8 +137,7 @@ import numpy as np
 from ..errors import InputError
 from ._random import uniform as _uniform
 from .base import LightResult, Param, Pooled, light_scale_param, param_table_markdown, register, scaled_size
-from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, map_entry, map_stats, receiver, stored_depth, texel_index,
-                         view_for)
+from .shadow_map import BIAS_PARAMS, ShadowMapTechnique, map_entry, map_stats, receiver, stored_depth, texel_index
 
 SOURCE = "[Buljan 2020, §3.6]"
 BLOCKER_COUNTS = (16, 25, 32)
@@ -394,9 +393,6 @@ class PCSS(ShadowMapTechnique):
 
     def filter(self, view, rec, bias, values):  # pragma: no cover - render_light() does the work
         raise NotImplementedError("pcss renders through PCSS.render_light (it needs the frame's normals)")
-
-    def render_light(self, frame, light, values, ctx):
-        return self.evaluate(frame, light, view_for(frame, light.name, values), values, ctx)
 
     def evaluate(self, frame, light, view, values, ctx):
         rec = receiver(frame, view, ctx.bias)

@@ -74,7 +74,7 @@ import mitsuba as mi
 
 from ..errors import InputError
 from .base import LightResult, Param, opaque_scalar
-from .shadow_map import BIAS_PARAMS, ShadowMapTechnique, depth_test, map_entry, map_stats, receiver, view_for
+from .shadow_map import BIAS_PARAMS, ShadowMapTechnique, depth_test, map_entry, map_stats, receiver
 
 SOURCE = "[Buljan 2020, §3.3]"
 KERNEL_MAX = 31
@@ -378,9 +378,6 @@ class PrefilteredTechnique(ShadowMapTechnique):
 
     def bias_values(self, values: dict) -> dict:
         return bias_values(values)
-
-    def render_light(self, frame, light, values, ctx):
-        return self.evaluate(frame, light, view_for(frame, light.name, values), values, ctx)
 
     def evaluate(self, frame, light, view, values, ctx):
         n = int(values.get("kernel", 1))

@@ -212,8 +212,9 @@ def depth_test(view, rec: dict, ix, iy, bias: Bias):
 class ShadowMapTechnique(Technique):
     """A technique that samples each light's shadow map. Its per-light part chooses the
     light's map (:meth:`view`) and :meth:`evaluate` s it: builds the receivers and calls
-    :meth:`filter` (the one thing ``hard`` and ``pcf`` implement); ``texel``, ``receiver_bias`` and ``depth_bias`` AOVs and the map's stats
-    (``maps``: resolution, depth bits, faces, texels, near, far) come with it."""
+    :meth:`filter` (the one thing ``hard`` and ``pcf`` implement; ``pcss`` and the prefiltered
+    families override :meth:`evaluate`); ``texel``, ``receiver_bias`` and ``depth_bias`` AOVs and
+    the map's stats (``maps``: resolution, depth bits, faces, texels, near, far) come with it."""
 
     source = "[Buljan 2020]"
 
