@@ -205,8 +205,10 @@ def demo(out: str = typer.Option("reports/demo", "--out", "-o"), force: bool = F
          variant: Optional[str] = VariantOpt):
     """Compare every registered technique that renders the built-in `contact` scene and print the table."""
     spec = load_spec(resolve("contact"))
-    _compare("contact", [n for n in base.names() if base.get(n).unsupported(spec) is None], [], out, None, variant,
-             force=force)
+    skipped = {n: why for n in base.names() if (why := base.get(n).unsupported(spec))}
+    for n, why in skipped.items():
+        typer.echo(f"demo skips {n}: {why}", err=True)
+    _compare("contact", [n for n in base.names() if n not in skipped], [], out, None, variant, force=force)
 
 
 @app.command()
