@@ -268,9 +268,10 @@ def _truth_of(sc, scene: str, base, render_missing: bool, progress: bool):
         return store.load(sc.spec, sc.resolution, base)
 
 
-def _compare_at(sc, scene, techniques, overrides, base, render_missing, progress, preset):
-    """(run, frame, results) of one frame of a loaded scene (see :func:`compare`)."""
-    truth, meta = _truth_of(sc, scene, base, render_missing, progress)
+def _compare_at(sc, scene, techniques, overrides, base, render_missing, progress, preset, loaded=None):
+    """(run, frame, results) of one frame of a loaded scene (see :func:`compare`); ``loaded``: its
+    (truth, meta), when the caller has read them already."""
+    truth, meta = loaded or _truth_of(sc, scene, base, render_missing, progress)
     frame = make_frame(sc, ss=int(meta.get("supersampling", 1)), seed=int(meta.get("seed", 0)))
     results = run_techniques(frame, techniques, overrides)
     run = {"scene": sc.name, "resolution": list(sc.resolution),
@@ -376,13 +377,12 @@ def compare(scene: str, techniques: list[str], sets: list[str] | None = None, ou
             build(Path(out), run, force=force, protected=[store_root])
         return run
     scenes = [sc.at_frame(f) for f in sel]
-    # every frame's truth is checked before anything is rendered or written
-    for s_ in scenes:
-        if not render_missing:
-            store.load(s_.spec, s_.resolution, base)
+    # every frame's truth is read (and checked) before anything is rendered or written
+    truths = {} if render_missing else {s_.frame: store.load(s_.spec, s_.resolution, base) for s_ in scenes}
     runs, fixed, first = [], None, None
     for s_ in scenes:
-        run, fr, results = _compare_at(s_, scene, techniques, overrides, base, render_missing, progress, preset)
+        run, fr, results = _compare_at(s_, scene, techniques, overrides, base, render_missing, progress, preset,
+                                       truths.get(s_.frame))
         runs.append(run)
         if fixed is None:
             fixed, first = fr, results

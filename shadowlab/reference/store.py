@@ -468,7 +468,7 @@ def load(scene_spec, resolution=None, base: Path | None = None, check_hash: bool
     """(Truth, meta) of a scene's stored reference; raises ReferenceError_ if missing, incomplete,
     damaged (checksum, keys, channels, size) or stale."""
     res = tuple(resolution or scene_spec.camera.resolution)
-    frame = getattr(scene_spec, "frame", None)
+    frame = scene_spec.frame
     d = path_for(scene_spec.name, res, base, frame=frame)
     cmd = reference_command(scene_arg(scene_spec), res, frame)
     _note(recover(d))
@@ -567,8 +567,9 @@ def _status(d: Path, scene: str, meta) -> list[str]:
 
 
 def list_references(base: Path | None = None) -> list[dict]:
-    """Every stored reference: scene, resolution (``"WxH"``), frame (None, or the camera path frame), path, meta and ``status`` (a list of problems:
-    incomplete, damaged, stale, checksum mismatch, ...; empty when the reference is fine).
+    """Every stored reference: scene, resolution (``"WxH"``), frame (None, or the camera path
+    frame), path, meta and ``status`` (a list of problems: incomplete, damaged, stale, checksum
+    mismatch, ...; empty when the reference is fine).
     Temporary and leftover directories of interrupted saves are not references and are not listed."""
     out = []
     r = Path(base or root())
