@@ -35,7 +35,9 @@ import numpy as np
 
 from ..render.frame import FrameContext
 from ..render.gbuffer import vec_numpy
+from ..render.lightview import cast_first_hit
 from ..render.shading import sample_light
+from ..scene.lights import forward as lights_fwd
 
 #: the largest seed a truth render takes: Mitsuba's ``mi.render`` gets seed·1000 + i (i < 1000), a 32-bit
 #: unsigned integer (``shadowlab reference --seed`` has the same range)
@@ -210,3 +212,32 @@ def target_missed(truth: Truth, target_se: float, max_rounds: int, worst: int = 
     return {"target_se": float(target_se), "max_rounds": int(max_rounds),
             "pixels": int(sum(v["pixels"] for v in lights.values())),
             "worst_se": float(max((v["worst_se"] for v in lights.values()), default=0.0)), "lights": lights}
+
+
+def centre_visibility(frame: FrameContext, light_name: str):
+    """Exact hard-shadow visibility of the light's centre at the G-buffer points (flat ``mi.Float``,
+    1 lit, 0 blocked; 1 where there is no surface): one Mitsuba ray per point toward the centre of
+    a positional light, or against a directional light's direction, skipping the light's own
+    shape (the truth's emitter: the sun's far disk, a sphere light's sphere) and, in scenes with
+    alpha-tested casters, their transparent texels. The truth a shadow map's aliasing is measured
+    against: a map of the light's centre converges to it as its resolution grows [Giegl 2007, §5]."""
+    gb = frame.gbuffer
+    spec = frame.scene.spec.light(light_name)
+    si = gb.si
+    if spec.kind == "directional":
+        d = np.asarray(lights_fwd(spec), np.float64)
+        ray = si.spawn_ray(mi.Vector3f(*[float(-x) for x in d]))
+        far = None
+    else:
+        ray = si.spawn_ray_to(mi.Point3f(*[float(x) for x in spec.position]))
+        far = ray.maxt
+        ray.maxt = dr.inf
+    scene = frame.scene
+    own = scene.light_shapes.get(light_name)
+    shapes = scene.mi_scene.shapes_dr()
+    own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
+    hit = cast_first_hit(scene.mi_scene, ray, False, own_ptr, bool(getattr(scene, "has_alpha", False)))
+    blocked = hit.is_valid() & gb.valid
+    if far is not None:
+        blocked &= hit.t < far
+    return dr.select(blocked, 0.0, 1.0)

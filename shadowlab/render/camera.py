@@ -44,6 +44,8 @@ from __future__ import annotations
 
 import math
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from ..scene import lights as lights_mod
@@ -275,6 +277,25 @@ class Camera:
         y = (1.0 - 2.0 * py / self.height) * self.tan_y * z
         return self.position[None] + z[:, None] * self.forward[None] + x[:, None] * self.right[None] + \
             y[:, None] * self.up[None]
+
+    def eye_unproject(self, xw, yw, ze):
+        """Eq. (1) of [Giegl 2007, §3.2]: window texture coordinates (x_w, y_w) ∈ [0, 1]² (y down
+        from the top row) and eye-space depth z_e -> world points, numpy (N, 3) or a Dr.Jit
+        ``mi.Point3f`` for Dr.Jit inputs.
+
+        x_e = z_e·(x_ndc − b_x)/a_x, y_e = z_e·(y_ndc − b_y)/a_y with a_x, b_x, a_y, b_y read from
+        :meth:`proj_d3d` (P[0][0], P[0][2], P[1][1], P[1][2]) and the viewport map x_ndc = 2x_w − 1,
+        y_ndc = 1 − 2y_w (the printed second matrix of Eq. (1) has that map's offsets garbled);
+        then Direct3D view space (x right, y up, z forward) -> world."""
+        P = self.proj_d3d()
+        ax, bx, ay, by = float(P[0, 0]), float(P[0, 2]), float(P[1, 1]), float(P[1, 2])
+        xe = ze * ((2.0 * xw - 1.0 - bx) / ax)
+        ye = ze * ((1.0 - 2.0 * yw - by) / ay)
+        if isinstance(ze, dr.ArrayBase):
+            o, r, u, f = (mi.Vector3f(*[float(c) for c in v]) for v in (self.position, self.right, self.up, self.forward))
+            return mi.Point3f(o + r * xe + u * ye + f * ze)
+        xe, ye, ze = (np.asarray(a, np.float64).reshape(-1, 1) for a in (xe, ye, ze))
+        return self.position[None] + xe * self.right[None] + ye * self.up[None] + ze * self.forward[None]
 
     def pixel_footprint(self, depth) -> np.ndarray:
         """World size of one pixel at view depth ``depth`` (square pixels)."""

@@ -516,7 +516,7 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     own = scene.light_shapes.get(light.name)
     shapes = scene.mi_scene.shapes_dr()
     own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
-    si = _cast(scene.mi_scene, ray, backface, own_ptr, bool(getattr(scene, "has_alpha", False)))
+    si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, bool(getattr(scene, "has_alpha", False)))
     hit = si.is_valid()
     # light-space z and the caster's plane in light space
     face_idx = np.repeat(np.arange(F), N * N)
@@ -558,7 +558,7 @@ MAX_SKIPS = 16         # surfaces a texel ray may skip (the light's own shape, b
 MAX_SKIPS_ALPHA = 64   # … in a scene with alpha-tested casters (foliage stacks many cards)
 
 
-def _cast(mi_scene, ray, backface: bool, own_ptr, alpha: bool = False):
+def cast_first_hit(mi_scene, ray, backface: bool, own_ptr, alpha: bool = False):
     """First hit along ``ray`` that is not the light's own shape, (with ``backface``) that faces
     away from the ray origin and (``alpha``: the scene has alpha-tested casters) that is not a
     transparent texel. A symbolic loop: at most MAX_SKIPS (MAX_SKIPS_ALPHA) surfaces are

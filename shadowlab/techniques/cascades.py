@@ -95,7 +95,7 @@ differentiable parameters (``pcss_light_scale``, ``vsm_min_variance``, …) stay
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import drjit as dr
 import mitsuba as mi
@@ -105,7 +105,7 @@ from ..errors import InputError
 from ..render.lightview import FrustumSlice, SceneSphere
 from . import esm, evsm, msm, pcf, pcss, shadow_map, vsm  # noqa: F401  (register the filter families)
 from .base import _REGISTRY, LightResult, Param, RenderContext, Technique, param_table_markdown, register
-from .shadow_map import BIAS_PARAMS, check_map_params, map_entry, map_settings, map_stats
+from .shadow_map import BIAS_PARAMS, Points, SubFrame, check_map_params, map_entry, map_settings, map_stats
 
 SOURCE = "[Buljan 2020, §4]"
 CASCADES_MAX = 8
@@ -249,27 +249,6 @@ CSM_PARAMS = (
 )
 
 
-@dataclass
-class _Points:
-    """The G-buffer arrays a family's :meth:`evaluate` reads, for a subset of the points."""
-
-    p: object
-    ng: object
-    valid: object
-
-
-@dataclass
-class _SubFrame:
-    """A frame restricted to the points one cascade selects."""
-
-    scene: object
-    gbuffer: _Points
-
-    @property
-    def lights(self):
-        return self.scene.spec.lights
-
-
 def _opaque3(v):
     return [dr.opaque(mi.Float, float(x)) for x in v]
 
@@ -373,7 +352,7 @@ class CSM(Technique):
             maps.append(entry)
             if dr.width(idx) == 0:
                 continue
-            sub = _SubFrame(frame.scene, _Points(dr.gather(mi.Point3f, gb.p, idx), dr.gather(mi.Normal3f, gb.ng, idx),
+            sub = SubFrame(frame.scene, Points(dr.gather(mi.Point3f, gb.p, idx), dr.gather(mi.Normal3f, gb.ng, idx),
                                                  dr.gather(mi.Bool, gb.valid, idx)))
             cv = self.cascade_values(ctx.family.name, ctx.fvalues, k)
             r = ctx.family.evaluate(sub, light, views[i], cv, ctx.fctx)

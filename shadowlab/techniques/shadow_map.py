@@ -126,6 +126,28 @@ def view_for(frame, light_name: str, values: dict):
 
 
 @dataclass
+class Points:
+    """The G-buffer arrays :func:`receiver` reads (``p``, ``ng``, ``valid``), for any set of points."""
+
+    p: object
+    ng: object
+    valid: object
+
+
+@dataclass
+class SubFrame:
+    """A frame whose G-buffer is a :class:`Points` (a subset of the points, or the points as
+    another pass reconstructs them): what ``csm`` hands each cascade's family."""
+
+    scene: object
+    gbuffer: Points
+
+    @property
+    def lights(self):
+        return self.scene.spec.lights
+
+
+@dataclass
 class Bias:
     """The bias parameters as opaque Dr.Jit scalars: new values reuse the compiled kernel."""
 

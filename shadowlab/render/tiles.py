@@ -1,0 +1,267 @@
+"""Tiled light views: the tiles of one virtual shadow map, ray cast in one wavefront [Giegl 2007, §3, §4.6, §4.10].
+
+A virtual shadow map is a one-face light camera ``base`` (a
+:class:`~shadowlab.render.lightview.Projection`, e.g. the directional light's map focused on the
+view by a :class:`~shadowlab.render.lightview.FrustumSlice`) whose NDC square [−1, 1]² is covered
+by tiles. Tile k is the rectangle [x0, x1] × [y0, y1] of that square (x right, y up) rendered at
+nx × ny texels: the per-axis sizes of [Giegl 2007, §4.10], so a tile's texels need not be square.
+Texel (i, j) of a tile has its centre at x = x0 + (i + ½)(x1 − x0)/nx, y = y1 − (j + ½)(y1 − y0)/ny
+(row 0 at the top, as in :mod:`~shadowlab.render.lightview`); a tile whose rectangle lies on the
+texel grid of a base map of nx·2/(x1 − x0) texels holds that map's depths there.
+
+Every tile's texels are cast in one Dr.Jit wavefront (a texel finds its tile by binary search
+over the tiles' texel offsets; chunks of :data:`CHUNK` texels bound the memory), with the
+conventions of :func:`~shadowlab.render.lightview.light_view`: ``depth`` is the NDC depth,
+quantised to 16/24-bit UNORM or kept as fp32, 1 where nothing was hit; ``slope`` the caster's
+max NDC depth slope per texel, max(|∂d/∂x|·t_x, |∂d/∂y|·t_y) with the tile's own texel widths.
+
+A :class:`TiledView` reads like a :class:`~shadowlab.render.lightview.LightView` for the
+shadow-map families' receiver and depth-test code (``lookup``, ``fetch``, ``proj``, ``bits``):
+its "face" is the tile. Which tile a point reads is decided beforehand by :meth:`TiledView.assign`
+(the deferred shadowing of [Giegl 2007, §3.2]: a tile writes every pixel of its screen rectangle
+whose point falls in the tile's texture; later tiles overwrite earlier ones).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..errors import InputError
+from .lightview import Projection, cast_first_hit
+
+#: texels per wavefront of :func:`render_tiles` (Mitsuba's intersection record is ~100 B a ray)
+CHUNK = 1 << 22
+
+
+@dataclass(frozen=True)
+class Tiles:
+    """Tile rectangles in the base map's NDC and their texel counts, in the order they are
+    applied (a later tile overwrites an earlier one where both hold a point). ``screen``:
+    optional (T, 4) screen rectangles [x0, y0, x1, y1) in pixels that each tile shadows (None:
+    the full screen)."""
+
+    x0: np.ndarray
+    y0: np.ndarray
+    x1: np.ndarray
+    y1: np.ndarray
+    nx: np.ndarray
+    ny: np.ndarray
+    screen: np.ndarray | None = None
+
+    def __post_init__(self):
+        for k in ("x0", "y0", "x1", "y1"):
+            object.__setattr__(self, k, np.asarray(getattr(self, k), np.float64).reshape(-1))
+        for k in ("nx", "ny"):
+            object.__setattr__(self, k, np.asarray(getattr(self, k), np.int64).reshape(-1))
+        T = len(self.x0)
+        if any(len(getattr(self, k)) != T for k in ("y0", "x1", "y1", "nx", "ny")):
+            raise ValueError("Tiles: every field needs one value per tile")
+        if T and (np.any(self.x1 <= self.x0) or np.any(self.y1 <= self.y0) or np.any(self.nx < 1) or np.any(self.ny < 1)):
+            raise ValueError("Tiles: expected x0 < x1, y0 < y1 and at least one texel per axis")
+        if self.screen is not None:
+            object.__setattr__(self, "screen", np.asarray(self.screen, np.float64).reshape(T, 4))
+
+    def __len__(self) -> int:
+        return len(self.x0)
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """(T + 1,) first texel of each tile in the concatenated texel array, then the total."""
+        return np.concatenate([[0], np.cumsum(self.nx * self.ny)]).astype(np.int64)
+
+    @property
+    def texels(self) -> int:
+        return int(np.sum(self.nx * self.ny))
+
+
+def face_ndc(face, p):
+    """World points (Dr.Jit) -> (x, y, light-space z): NDC of the light camera ``face``."""
+    rel = p - mi.Point3f(*face.origin)
+    qx, qy, qz = (dr.dot(rel, mi.Vector3f(*face.R[r])) for r in range(3))
+    if face.ortho:
+        x, y = qx / face.scale, qy / face.scale
+    else:
+        inv = dr.rcp(dr.maximum(qz, 1e-12)) / face.scale
+        x, y = qx * inv, qy * inv
+    return x - face.shift[0], y - face.shift[1], qz
+
+
+@dataclass
+class TiledView:
+    """The rendered tiles of a virtual map (see the module docstring)."""
+
+    light: object
+    proj: Projection          # the base map (one face): near, far, matrices of every tile
+    bits: int
+    backface: bool
+    tiles: Tiles
+    depth: object             # mi.Float, concatenated tiles, row-major per tile
+    slope: object             # mi.Float
+    hit_texels: int
+    point_tile: object = None  # mi.UInt32 per point (see assign)
+    point_has: object = None   # mi.Bool per point: some tile holds it
+
+    @property
+    def res(self) -> int:
+        """The largest tile side (texels)."""
+        return int(max(self.tiles.nx.max(initial=0), self.tiles.ny.max(initial=0)))
+
+    @property
+    def nfaces(self) -> int:
+        return len(self.tiles)
+
+    def _tab(self, name):
+        cache = self.__dict__.setdefault("_tabs", {})
+        if name not in cache:
+            t = self.tiles
+            if name in ("nx", "ny", "off"):
+                a = {"nx": t.nx, "ny": t.ny, "off": t.offsets[:-1]}[name]
+                cache[name] = mi.UInt32(np.asarray(a, np.uint32))
+            else:
+                f0 = self.proj.faces[0]
+                a = {"x0": t.x0, "y0": t.y0, "x1": t.x1, "y1": t.y1,
+                     "sx": t.nx / (t.x1 - t.x0), "sy": t.ny / (t.y1 - t.y0),
+                     "texel": np.maximum((t.x1 - t.x0) / t.nx, (t.y1 - t.y0) / t.ny) * f0.scale}[name]
+                cache[name] = mi.Float(np.asarray(a, np.float32))
+        return cache[name]
+
+    def ndc(self, p):
+        """World points -> (x, y, light-space z) in the base map's NDC (Dr.Jit)."""
+        return face_ndc(self.proj.faces[0], p)
+
+    def assign(self, p, px=None, py=None, cells=None, n: int = 1) -> "TiledView":
+        """This view bound to the tile each point reads: the last tile (in application order)
+        whose texture holds the point's NDC position and, where tiles have screen rectangles,
+        whose rectangle holds the point's pixel (``px``, ``py``: continuous pixel coordinates).
+
+        ``cells``: (n, n) int table of the tile to try first for each cell of an n×n grid over
+        the NDC square (−1 none); the point's cell and its 8 neighbours' tiles are the
+        candidates (a tile's overlap reaches at most into the adjacent cells). None: every tile
+        is tried (a loop over the tiles; for tests and small tile counts)."""
+        x, y, _ = self.ndc(p)
+        T = len(self.tiles)
+        if T == 0:
+            return replace(self, point_tile=dr.zeros(mi.UInt32, dr.width(x)), point_has=dr.full(mi.Bool, False, dr.width(x)))
+        best = mi.Int32(-1)
+        if cells is None:
+            cand = [mi.Int32(k) for k in range(T)]
+        else:
+            cells = np.asarray(cells, np.int32)
+            tab = mi.Int32(cells.ravel())
+            cx = mi.Int32(dr.clip(dr.floor((x + 1.0) * 0.5 * n), 0, n - 1))
+            cy = mi.Int32(dr.clip(dr.floor((1.0 - y) * 0.5 * n), 0, n - 1))
+            cand = []
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    ok = (cx + dx >= 0) & (cx + dx < n) & (cy + dy >= 0) & (cy + dy < n)
+                    k = dr.gather(mi.Int32, tab, mi.UInt32(dr.clip((cy + dy) * n + cx + dx, 0, n * n - 1)))
+                    cand.append(dr.select(ok, k, -1))
+        scr = self.tiles.screen
+        st = [mi.Float(np.asarray(scr[:, c], np.float32)) for c in range(4)] if scr is not None and px is not None else None
+        for k in cand:
+            kk = mi.UInt32(dr.maximum(k, 0))
+            g = lambda name: dr.gather(mi.Float, self._tab(name), kk)  # noqa: E731
+            inside = (k >= 0) & (x >= g("x0")) & (x <= g("x1")) & (y >= g("y0")) & (y <= g("y1"))
+            if st is not None:
+                sg = [dr.gather(mi.Float, a, kk) for a in st]
+                inside &= (px >= sg[0]) & (px < sg[2]) & (py >= sg[1]) & (py < sg[3])
+            best = dr.select(inside & (k > best), k, best)
+        dr.eval(best)
+        return replace(self, point_tile=mi.UInt32(dr.maximum(best, 0)), point_has=best >= 0)
+
+    def lookup(self, p):
+        """:meth:`LightView.lookup` for the points :meth:`assign` bound: ``face`` is the point's
+        tile, ``u``, ``v`` its continuous texel coordinates in that tile, ``inside`` False where no
+        tile holds the point, ``texel`` the world size of the tile's larger texel side."""
+        if self.point_tile is None:
+            raise ValueError("TiledView.lookup needs the points' tiles: call assign() first")
+        f0 = self.proj.faces[0]
+        x, y, qz = self.ndc(p)
+        t = self.point_tile
+        g = lambda name: dr.gather(mi.Float, self._tab(name), t)  # noqa: E731
+        u = (x - g("x0")) * g("sx")
+        v = (g("y1") - y) * g("sy")
+        texel = g("texel") if f0.ortho else g("texel") * qz
+        inside = self.point_has & (qz > f0.near) & (qz < f0.far) & (dr.abs(x) <= 1.0) & (dr.abs(y) <= 1.0)
+        d = f0.ndc_depth(qz if f0.ortho else dr.maximum(qz, 1e-12))
+        return {"face": t, "u": u, "v": v, "z": qz, "d": d, "inside": inside, "texel": texel}
+
+    def fetch(self, name: str, face, ix, iy):
+        """Texel values of tile ``face`` at integer texel coordinates, clamped to the tile."""
+        face = mi.UInt32(face)
+        nx = dr.gather(mi.UInt32, self._tab("nx"), face)
+        ny = dr.gather(mi.UInt32, self._tab("ny"), face)
+        ix = mi.UInt32(dr.clip(mi.Int32(ix), 0, mi.Int32(nx) - 1))
+        iy = mi.UInt32(dr.clip(mi.Int32(iy), 0, mi.Int32(ny) - 1))
+        idx = dr.gather(mi.UInt32, self._tab("off"), face) + iy * nx + ix
+        return dr.gather(mi.Float, getattr(self, name), idx)
+
+
+def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backface: bool = False) -> TiledView:
+    """Cast one ray per texel of every tile (one wavefront per :data:`CHUNK` texels)."""
+    if len(base.faces) != 1:
+        raise InputError(f"light {light.name!r}: a virtual tiled map needs a one-face light camera "
+                         f"(directional or spot), not a {len(base.faces)}-face map")
+    f0 = base.faces[0]
+    T, total = len(tiles), tiles.texels
+    if T == 0:
+        return TiledView(light, base, int(bits), bool(backface), tiles, mi.Float(), mi.Float(), 0)
+    off = tiles.offsets
+    off_dr = mi.UInt32(np.asarray(off, np.uint32))
+    tab = lambda a: mi.Float(np.asarray(a, np.float32))  # noqa: E731
+    X0, Y1 = tab(tiles.x0), tab(tiles.y1)
+    DX, DY = tab((tiles.x1 - tiles.x0) / tiles.nx), tab((tiles.y1 - tiles.y0) / tiles.ny)
+    NX = mi.UInt32(np.asarray(tiles.nx, np.uint32))
+    TX, TY = tab((tiles.x1 - tiles.x0) / tiles.nx * f0.scale), tab((tiles.y1 - tiles.y0) / tiles.ny * f0.scale)
+    o = mi.Vector3f(*f0.origin)
+    R = [mi.Vector3f(*f0.R[r]) for r in range(3)]
+    own = scene.light_shapes.get(light.name)
+    shapes = scene.mi_scene.shapes_dr()
+    own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
+    alpha = bool(getattr(scene, "has_alpha", False))
+    n_, f_ = f0.near, f0.far
+    depth, slope, hits = [], [], 0
+    for k0 in range(0, total, CHUNK):
+        k = dr.arange(mi.UInt32, k0, min(total, k0 + CHUNK))
+        t = dr.binary_search(0, T - 1, lambda i: dr.gather(mi.UInt32, off_dr, i + 1) <= k)
+        j = k - dr.gather(mi.UInt32, off_dr, t)
+        nx = dr.maximum(dr.gather(mi.UInt32, NX, t), 1)   # the LLVM packet's unused lanes gather 0: no x/0 there
+        col, row = j % nx, j // nx
+        xb = dr.gather(mi.Float, X0, t) + (mi.Float(col) + 0.5) * dr.gather(mi.Float, DX, t) + f0.shift[0]
+        yb = dr.gather(mi.Float, Y1, t) - (mi.Float(row) + 0.5) * dr.gather(mi.Float, DY, t) + f0.shift[1]
+        if f0.ortho:
+            d = R[2]
+            org = o + R[0] * (xb * f0.scale) + R[1] * (yb * f0.scale) + R[2] * min(0.0, n_)
+        else:
+            d = dr.normalize(R[0] * (xb * f0.scale) + R[1] * (yb * f0.scale) + R[2])
+            org = o + d * (1e-5 * scene.radius)
+        ray = mi.Ray3f(mi.Point3f(org), mi.Vector3f(d))
+        si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha)
+        hit = si.is_valid()
+        rel = si.p - mi.Point3f(o)
+        q = [dr.dot(rel, R[r]) for r in range(3)]
+        nl = [dr.dot(mi.Vector3f(si.n), R[r]) for r in range(3)]
+        tx, ty = dr.gather(mi.Float, TX, t), dr.gather(mi.Float, TY, t)
+        m = dr.maximum(dr.abs(nl[0]) * tx, dr.abs(nl[1]) * ty)
+        if f0.ortho:
+            s = m / (dr.abs(nl[2]) * (f_ - n_))
+        else:
+            s = (f_ * n_ / (f_ - n_)) * m / dr.abs(nl[0] * q[0] + nl[1] * q[1] + nl[2] * q[2])
+        s = dr.select(hit & dr.isfinite(s), dr.minimum(s, 1.0), 0.0)
+        z = dr.select(hit, q[2], f_)
+        dn = dr.select(hit, f0.ndc_depth(dr.clip(z, n_, f_)), 1.0)
+        dn = dr.clip(dn, 0.0, 1.0)
+        if int(bits) != 32:
+            mq = float(2 ** int(bits) - 1)
+            dn = dr.round(dn * mq) / mq
+        dr.eval(dn, s)
+        hits += int(dr.count(hit)[0])
+        depth.append(dn)
+        slope.append(s)
+    if len(depth) > 1:  # several wavefronts: one array again
+        depth, slope = [mi.Float(np.concatenate([a.numpy() for a in depth]))], [mi.Float(np.concatenate([a.numpy() for a in slope]))]
+    return TiledView(light, base, int(bits), bool(backface), tiles, depth[0], slope[0], hits)

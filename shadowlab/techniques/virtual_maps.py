@@ -1,0 +1,594 @@
+"""Virtual shadow maps: the brute-force virtual tiled shadow map (``vtsm``) and fitted virtual
+shadow maps (``fvsm``) [Giegl 2007, §3–4].
+
+Both cover one *virtual* shadow map of a directional light, the light's orthographic map focused
+on the visible part of the view (``focus``: the bounding sphere or box of the camera frustum
+between the shadowed range's view depths, the fit of ``csm``'s cascades
+[Buljan 2020, §4.2]; or the whole scene), with tiles: rectangles of its NDC square, each
+rendered as a texture of its own (:mod:`shadowlab.render.tiles`, one ray per texel) and applied by
+deferred shadowing into a one-byte *shadow result texture* (§3.2): a tile writes the hard,
+biased depth test of ``hard`` ([Buljan 2020, §2.3], the same code) for every pixel whose point
+falls in its texture; a later tile overwrites an earlier one. A pixel no tile writes keeps the
+texture's clear value, lit (``unshadowed_fraction``).
+
+Eq. (1) of §3.2 (:meth:`shadowlab.render.camera.Camera.eye_unproject`) reconstructs a pixel's
+point from the eye-space depth buffer; it gives the G-buffer's points (to float precision, a
+test), and the pass reads the G-buffer's points so that the technique is evaluated where the
+truth is, also along a camera path (frame 0's points seen by frame t's camera).
+
+**vtsm** (§3): the virtual map cut into ``grid`` × ``grid`` equal tiles, every one rendered at
+``t_max`` × ``t_max`` (16 × 16 tiles of 4096² in 001; 8 × 1024² by default here, 67 M rays a frame).
+
+**fvsm** (§4): only the tiles the view needs, at the resolution it needs:
+
+1. *SMTMM* (§4.3, the shadow map tile mapping map): per pixel of the frame, its position in
+   the virtual map and the virtual map resolution each axis needs there. The pixel's footprint
+   is the parallelogram of its two screen neighbours: along x the neighbour (left or right) of
+   smaller |Δz| in view depth (the other way round across a silhouette), along y likewise;
+   projected into the map's NDC, its bounding box has half extents Δ_x, Δ_y, and a map of 1/Δ
+   texels across [−1, 1] gives that pixel one texel. The demand level is
+   L = round(−log2 Δ + ½) (rounding half up: floor(−log2 Δ + 1), the byte 001 stores as L/256),
+   so 2^L > 1/Δ. The SMTMM samples every ``smtmm_scale``-th pixel (the pixel at each block's
+   centre): 256² for a 1024² frame at the default 4 (§5).
+2. *SMTG* (§4.4, the tile grid): ``grid`` × ``grid`` cells over the map; per cell and axis the
+   maximum level, the screen rectangle of its SMTMM pixels, and a histogram of pixel counts per
+   level with every level below η0 in one bucket and every level above η1 in another
+   (η0 = 17, η1 = 22, §5). The discard rule: the ``discard`` fraction of a cell's pixels with
+   the highest demands may go unmet; the cell's demand is then the level of the highest bucket
+   whose count from the top exceeds that many pixels (a level; the cell's maximum for the top
+   bucket; the highest level below η0 for the bottom one). ``discard`` = 0 keeps the maximum.
+3. *Pyramid* (§4.5): the maximum demand and the merged screen rectangle of every block of
+   2^a × 2^b cells, so every node of the kd-tree below (2 × 2 maxima on the diagonal a = b).
+4. *Traversal* (§4.6), top-down from the whole map, an implicit kd-tree: a node of 2^−p_x ×
+   2^−p_y of the map needs 2^(L − p) texels along an axis; it splits along each axis where
+   L − ξ − p > log2 t_max (in 2 or 4), else it is a tile of min(2^(L − p), t_max) texels per axis
+   ([Giegl 2007, §4.10]: the size it needs), extended by ``overlap`` texels on every side; nodes
+   without pixels make no tile. ξ (§4.9) lowers every demand by 2^ξ when deciding to refine: a
+   large ξ stops at the root, one ordinary focused map of min(2^L, t_max) texels per axis.
+   At the ``grid`` level a node cannot split further and takes t_max (its demand unmet).
+   Tiles are applied in traversal order (breadth first), each to its screen rectangle
+   (``apply`` = ``rect``, §5 Fig. 6) or to the whole screen (``full``).
+
+**Tile texture modes** (``tile_mode``, §4.10), which change only the memory the tiles take
+(every mode renders a tile at its own w × h texels; these are the textures they are drawn into,
+reused by later tiles as tiles are drawn one after another), 4 bytes a texel (one float):
+
+* ``subrect``: a sub-rectangle of one S × S texture, S = t_max + 2·overlap: S²;
+* ``pow2``: a sub-rectangle of the smallest texture of the series S_k = t_max/2^k + 2·overlap
+  that holds the tile: Σ S_k² over the k used (≤ 4/3·t_max² without overlap);
+* ``exact``: a texture of exactly w × h per shape used: Σ w·h over the distinct shapes
+  (2·4/3·t_max² in 001's count, which assumes aspect ratios of at most 2).
+
+Stats per light: ``tiles``, ``texels`` (rays cast), ``memory_bytes`` (the chosen mode) and
+``memory_modes`` (all three), ``traversal_depth`` (the deepest pyramid level a tile sits on,
+max(p_x, p_y)), ``demand`` (the root's demand levels [L_x, L_y]: the virtual map 2^L a
+sub-pixel result needs), ``smtmm`` (its size), ``discarded_pixels`` and ``unshadowed_fraction``.
+AOVs: ``tile`` (the tile a pixel reads, −1 none), ``demand_x``, ``demand_y`` (L per pixel),
+``provided_x``, ``provided_y`` (log2 of the virtual resolution its tile gives), ``cell`` (the
+SMTG cell, for the grid overlay). Every parameter steps the result (none is differentiable).
+
+Not done: LiSPSM focusing; semitransparent receivers (001 shadows them with one ordinary map):
+no built-in scene has them.
+
+>>> demand_level(np.array([0.5, 0.25, 0.3, 1e-4])).tolist()
+[2, 3, 2, 14]
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..errors import InputError
+from ..render.lightview import FrustumSlice, SceneSphere, projection
+from ..render.tiles import Tiles, face_ndc, render_tiles
+from .base import LightResult, Param, Technique, param_table_markdown, register
+from .cascades import CSM_PARAMS, shadow_range
+from .shadow_map import (BIAS_PARAMS, Points, SubFrame, depth_test, map_settings, opaque_bias, receiver,
+                         texel_index)
+
+SOURCE = "[Giegl 2007]"
+GRIDS = (1, 2, 4, 8, 16, 32)
+T_MAX_LIMIT = 16384
+LEVEL_MAX = 255
+TILE_MODES = ("subrect", "pow2", "exact")
+_CSM = {p.name: p for p in CSM_PARAMS}
+
+
+def _focus_params(default: str) -> tuple:
+    return (
+        Param("focus", default, "choice", choices=("sphere", "box", "scene"), source="[Giegl 2007, §4.8]",
+              doc="the virtual map's light camera: focused on the view frustum between the shadowed range's depths "
+                  "(its bounding sphere, or its light-space bounding box), or the whole scene"),
+        replace(_CSM["snap"], doc="move the focused light across its direction by whole texels of the finest "
+                                  "possible virtual map (grid × t_max), so its texel grid holds still under small camera moves"),
+        replace(_CSM["pull"], doc="pull-back of the focused light from the frustum's centre, in radii of its bounding sphere"),
+        replace(_CSM["shadow_near"], doc="near end of the focused range (view depth); 0 = the camera's near clip within the scene"),
+        replace(_CSM["shadow_far"], doc="far end of the focused range (view depth); 0 = the camera's far clip within the scene"),
+    )
+
+
+def _tile_params(grid_default: int, grid_doc: str) -> tuple:
+    return (
+        Param("t_max", 1024, "int", 1, T_MAX_LIMIT, "texels", False, source="[Giegl 2007, §3]",
+              doc="largest tile texture side, a power of two ≤ 16384 (4096 in 001; 1024 is under a second of rays "
+                  "on 2 CPU cores)"),
+        Param("grid", grid_default, "choice", units="tiles per axis", choices=GRIDS, source="[Giegl 2007, §3, §4.4]",
+              doc=grid_doc),
+    )
+
+
+#: the bias parameters of ``hard``; a tile's size comes from the tiling, not ``resolution``
+TILE_BIAS_PARAMS = tuple(p for p in BIAS_PARAMS if p.name != "resolution")
+
+VTSM_PARAMS = _tile_params(8, "n: the virtual map is n × n tiles of t_max² each (16 in 001)") + _focus_params("sphere")
+
+FVSM_PARAMS = _tile_params(16, "n: the SMTG has n × n cells, the finest tiles (16 or 32 in 001)") + (
+    Param("xi", 0, "int", 0, 16, "log2 levels", False, source="[Giegl 2007, §4.9]",
+          doc="ξ: subtracted from the log2 demand when deciding to refine (0 … 5 in 001; large = one ordinary map)"),
+    Param("smtmm_scale", 4, "int", 1, 16, "pixels", False, source="[Giegl 2007, §4.3, §5]",
+          doc="frame pixels per SMTMM pixel along each axis (4: a 256² SMTMM for a 1024² frame, as in 001)"),
+    Param("eta0", 17, "int", 0, LEVEL_MAX, "log2 texels", False, source="[Giegl 2007, §4.4, §5]",
+          doc="η0: demand levels below it share the histogram's lowest bucket"),
+    Param("eta1", 22, "int", 0, LEVEL_MAX, "log2 texels", False, source="[Giegl 2007, §4.4, §5]",
+          doc="η1: demand levels above it share the histogram's highest bucket (η0 < η1)"),
+    Param("discard", 0.0, "float", 0.0, 0.5, "fraction of a cell's pixels", False, source="[Giegl 2007, §4.4]",
+          doc="the share of a cell's SMTMM pixels with the highest demands that may go unmet (0 = none)"),
+    Param("tile_mode", "pow2", "choice", choices=TILE_MODES, source="[Giegl 2007, §4.10]",
+          doc="tile textures: sub-rectangles of one t_max² texture, of a power-of-two series (recommended), or of "
+              "the exact per-axis size (memory only: every mode renders the same texels)"),
+    Param("overlap", 1, "int", 0, 8, "texels", False, source="[Giegl 2007, §5]",
+          doc="texels each tile extends beyond its rectangle on every side (tiles overlap slightly)"),
+    Param("apply", "rect", "choice", choices=("rect", "full"), source="[Giegl 2007, §4.5, §5]",
+          doc="a tile shadows the screen rectangle of its pixels (rect) or the whole screen (full)"),
+) + _focus_params("sphere")
+
+
+# ----------------------------------------------------------------------------------------------
+# the demand (SMTMM, §4.3)
+
+def demand_level(delta):
+    """Quantised demand L = round(−log2 Δ + ½), half up (= floor(−log2 Δ + 1)), in 0 … 255, of
+    a footprint half extent Δ in the map's NDC (numpy or Dr.Jit); Δ ≤ 0 demands 255."""
+    if isinstance(delta, dr.ArrayBase):
+        L = dr.floor(-dr.log2(dr.maximum(delta, 1e-30)) + 1.0)
+        return dr.clip(dr.select(delta > 0, L, LEVEL_MAX), 0, LEVEL_MAX)
+    d = np.asarray(delta, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        L = np.floor(-np.log2(np.where(d > 0, d, 1.0)) + 1.0)
+    return np.clip(np.where(d > 0, L, LEVEL_MAX), 0, LEVEL_MAX).astype(np.int64)
+
+
+def footprint(screen, face):
+    """Per point (Dr.Jit, G-buffer order): the NDC half extents (Δ_x, Δ_y) of the pixel's
+    footprint in the map ``face`` (see the module docstring, step 1) and its NDC (x, y)."""
+    P = screen.position
+    x, y, _ = face_ndc(face, P)
+    axes = []
+    for dx, dy, n in ((1, 0, screen.width), (0, 1, screen.height)):
+        coord = screen.x if dx else screen.y
+        z = screen.depth
+        zm, zp = screen.gather("depth", -dx, -dy), screen.gather("depth", dx, dy)
+        vm = screen.gather("valid", -dx, -dy) & (coord > 0)
+        vp = screen.gather("valid", dx, dy) & (coord < n - 1)
+        use_p = vp & (~vm | (dr.abs(zp - z) <= dr.abs(zm - z)))
+        Pm, Pp = screen.gather("position", -dx, -dy), screen.gather("position", dx, dy)
+        e = dr.select(use_p, Pp - P, P - Pm)
+        # no neighbour on this surface: the pixel's own width at its depth, facing the camera
+        cam = screen.camera
+        axis = cam.right if dx else -cam.up
+        w = z * (2.0 * (cam.tan_x if dx else cam.tan_y) / n)
+        e = dr.select(vm | vp, e, mi.Vector3f(*[float(c) for c in axis]) * w)
+        axes.append(e)
+    xe, ye, _ = face_ndc(face, P + axes[0])
+    xf, yf, _ = face_ndc(face, P + axes[1])
+    ax, ay, bx, by = xe - x, ye - y, xf - x, yf - y
+    return 0.5 * (dr.abs(ax) + dr.abs(bx)), 0.5 * (dr.abs(ay) + dr.abs(by)), x, y
+
+
+@dataclass
+class SMTMM:
+    """The sampled demand: per SMTMM pixel (numpy, flat, row-major over ``shape`` = (h, w)) its
+    map NDC (x, y), levels (lx, ly), whether it holds a surface inside the map (``ok``), and
+    the grid pixel it samples (``gx``, ``gy``)."""
+
+    shape: tuple
+    scale: int
+    x: np.ndarray
+    y: np.ndarray
+    lx: np.ndarray
+    ly: np.ndarray
+    ok: np.ndarray
+    gx: np.ndarray
+    gy: np.ndarray
+
+
+def sample_smtmm(screen, x, y, lx, ly, scale: int) -> SMTMM:
+    """Every ``scale``-th grid pixel (each scale × scale block's centre) of the per-point maps."""
+    W, H = screen.width, screen.height
+    w, h = -(-W // scale), -(-H // scale)
+    gx = np.minimum(np.arange(w) * scale + scale // 2, W - 1)
+    gy = np.minimum(np.arange(h) * scale + scale // 2, H - 1)
+    GX, GY = np.meshgrid(gx, gy, indexing="xy")
+    idx = screen.index(mi.Int32(GX.ravel().astype(np.int32)), mi.Int32(GY.ravel().astype(np.int32)))
+    g = lambda a, t=mi.Float: dr.gather(t, a, idx).numpy()  # noqa: E731
+    X, Y = g(x).astype(np.float64), g(y).astype(np.float64)
+    ok = g(screen.valid, mi.Bool).astype(bool) & (np.abs(X) <= 1.0) & (np.abs(Y) <= 1.0)
+    return SMTMM((h, w), int(scale), X, Y, g(lx).astype(np.int64), g(ly).astype(np.int64), ok,
+                 GX.ravel(), GY.ravel())
+
+
+# ----------------------------------------------------------------------------------------------
+# the tile grid (SMTG, §4.4), the discard rule and the pyramid (§4.5)
+
+def cells_of(x, y, n: int):
+    """(column, row) of the n × n grid cell holding NDC (x, y) (row 0 at the top)."""
+    cx = np.clip(np.floor((np.asarray(x) + 1.0) * 0.5 * n), 0, n - 1).astype(np.int64)
+    cy = np.clip(np.floor((1.0 - np.asarray(y)) * 0.5 * n), 0, n - 1).astype(np.int64)
+    return cx, cy
+
+
+def bucket(levels, eta0: int, eta1: int):
+    """Histogram bucket of demand levels: 0 below η0, L − η0 + 1 for η0 ≤ L ≤ η1, η1 − η0 + 2 above η1."""
+    return np.clip(np.asarray(levels, np.int64) - eta0 + 1, 0, eta1 - eta0 + 2)
+
+
+@dataclass
+class Grid:
+    """The SMTG: per cell (arrays (n, n), [row, column]) and axis a = x, y: ``count`` of pixels,
+    ``max`` level (−1 empty), ``hist`` (n, n, buckets), ``lo_max`` (highest level below η0, −1
+    none), ``rect`` (n, n, 4) screen rectangle [x0, y0, x1, y1] in SMTMM pixels (inclusive)."""
+
+    n: int
+    eta0: int
+    eta1: int
+    count: np.ndarray
+    max: dict
+    hist: dict
+    lo_max: dict
+    rect: np.ndarray
+
+
+def tile_grid(sm: SMTMM, n: int, eta0: int, eta1: int) -> Grid:
+    """Accumulate the SMTMM pixels into the n × n SMTG (numpy, no loop over pixels)."""
+    ok = sm.ok
+    cx, cy = cells_of(sm.x[ok], sm.y[ok], n)
+    cell = cy * n + cx
+    count = np.bincount(cell, minlength=n * n).reshape(n, n)
+    nb = eta1 - eta0 + 3
+    mx, hist, lo = {}, {}, {}
+    for a, L in (("x", sm.lx[ok]), ("y", sm.ly[ok])):
+        m = np.full(n * n, -1, np.int64)
+        np.maximum.at(m, cell, L)
+        mx[a] = m.reshape(n, n)
+        h = np.zeros(n * n * nb, np.int64)
+        np.add.at(h, cell * nb + bucket(L, eta0, eta1), 1)
+        hist[a] = h.reshape(n, n, nb)
+        lm = np.full(n * n, -1, np.int64)
+        low = L < eta0
+        np.maximum.at(lm, cell[low], L[low])
+        lo[a] = lm.reshape(n, n)
+    px = (np.arange(sm.shape[0] * sm.shape[1]) % sm.shape[1])[ok]
+    py = (np.arange(sm.shape[0] * sm.shape[1]) // sm.shape[1])[ok]
+    rect = np.empty((n * n, 4), np.int64)
+    rect[:, :2], rect[:, 2:] = np.iinfo(np.int64).max, -1
+    np.minimum.at(rect[:, 0], cell, px)
+    np.minimum.at(rect[:, 1], cell, py)
+    np.maximum.at(rect[:, 2], cell, px)
+    np.maximum.at(rect[:, 3], cell, py)
+    return Grid(n, eta0, eta1, count, mx, hist, lo, rect.reshape(n, n, 4))
+
+
+def cell_demand(g: Grid, fraction: float) -> tuple:
+    """(demand x, demand y, discarded pixels per cell) under the discard rule (module docstring,
+    step 2); −1 where a cell is empty."""
+    allowed = np.floor(float(fraction) * g.count).astype(np.int64)
+    out, dropped = {}, np.zeros_like(g.count)
+    for a in ("x", "y"):
+        h = g.hist[a]
+        nb = h.shape[-1]
+        above = np.cumsum(h[..., ::-1], axis=-1)[..., ::-1]        # pixels in bucket b or higher
+        keep = above > allowed[..., None]
+        b = np.where(keep.any(-1), nb - 1 - np.argmax(keep[..., ::-1], axis=-1), 0)
+        lvl = np.where(b == nb - 1, g.max[a], np.where(b == 0, g.lo_max[a], g.eta0 + b - 1))
+        # a middle bucket's level never exceeds the cell's own maximum
+        lvl = np.minimum(lvl, g.max[a])
+        out[a] = np.where(g.count > 0, lvl, -1)
+        nxt = np.concatenate([above[..., 1:], np.zeros_like(above[..., :1])], axis=-1)
+        dropped = np.maximum(dropped, np.take_along_axis(nxt, b[..., None], -1)[..., 0] * (g.count > 0))
+    return out["x"], out["y"], dropped
+
+
+@dataclass
+class Pyramid:
+    """Per level pair (a, b) (2^a columns, 2^b rows of blocks): the maximum demand per axis, the
+    pixel count and the merged screen rectangle of every block of the n × n grid."""
+
+    K: int
+    lx: dict
+    ly: dict
+    count: dict
+    rect: dict
+
+
+def pyramid(dx: np.ndarray, dy: np.ndarray, count: np.ndarray, rect: np.ndarray) -> Pyramid:
+    """Block maxima of the cell demands over every 2^(K−a) × 2^(K−b) block (numpy reductions)."""
+    n = dx.shape[0]
+    K = int(round(math.log2(n)))
+    lx, ly, cnt, rc = {}, {}, {}, {}
+    for a in range(K + 1):
+        for b in range(K + 1):
+            sh = (2 ** b, n >> b, 2 ** a, n >> a)
+            lx[a, b] = dx.reshape(sh).max(axis=(1, 3))
+            ly[a, b] = dy.reshape(sh).max(axis=(1, 3))
+            cnt[a, b] = count.reshape(sh).sum(axis=(1, 3))
+            r = rect.reshape(2 ** b, n >> b, 2 ** a, n >> a, 4)
+            rc[a, b] = np.stack([r[..., 0].min(axis=(1, 3)), r[..., 1].min(axis=(1, 3)),
+                                 r[..., 2].max(axis=(1, 3)), r[..., 3].max(axis=(1, 3))], -1)
+    return Pyramid(K, lx, ly, cnt, rc)
+
+
+# ----------------------------------------------------------------------------------------------
+# the traversal (§4.6, §4.9, §4.10)
+
+@dataclass
+class Leaves:
+    """The tiles of a traversal in the order they are applied: node (ix, iy) at pyramid levels
+    (px, py), demands (lx, ly), texels (w, h) without the overlap, screen rectangles (SMTMM
+    pixels, inclusive); ``depth``: traversal iterations."""
+
+    ix: np.ndarray
+    iy: np.ndarray
+    px: np.ndarray
+    py: np.ndarray
+    lx: np.ndarray
+    ly: np.ndarray
+    w: np.ndarray
+    h: np.ndarray
+    rect: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.ix)
+
+
+def traverse(pyr: Pyramid, xi: int, t_max: int) -> Leaves:
+    """Breadth-first refinement of the pyramid into tiles (vectorised per level of the tree)."""
+    K, lt = pyr.K, int(round(math.log2(t_max)))
+    ix = iy = px = py = np.zeros(1, np.int64)
+    out = {k: [] for k in ("ix", "iy", "px", "py", "lx", "ly", "rect")}
+    while len(ix):
+        lx = np.empty(len(ix), np.int64)
+        ly, cnt = np.empty_like(lx), np.empty_like(lx)
+        rect = np.empty((len(ix), 4), np.int64)
+        for a, b in set(zip(px.tolist(), py.tolist())):   # the (≤ (K+1)²) levels present
+            m = (px == a) & (py == b)
+            lx[m], ly[m] = pyr.lx[a, b][iy[m], ix[m]], pyr.ly[a, b][iy[m], ix[m]]
+            cnt[m], rect[m] = pyr.count[a, b][iy[m], ix[m]], pyr.rect[a, b][iy[m], ix[m]]
+        live = cnt > 0
+        ex = live & (lx - xi - px > lt) & (px < K)
+        ey = live & (ly - xi - py > lt) & (py < K)
+        leaf = live & ~ex & ~ey
+        for k, v in (("ix", ix), ("iy", iy), ("px", px), ("py", py), ("lx", lx), ("ly", ly), ("rect", rect)):
+            out[k].append(v[leaf])
+        split = ex | ey
+        kids = []
+        for ddx in (0, 1):
+            for ddy in (0, 1):
+                m = split & ((ddx == 0) | ex) & ((ddy == 0) | ey)
+                kids.append((np.where(ex, 2 * ix + ddx, ix)[m], np.where(ey, 2 * iy + ddy, iy)[m],
+                             (px + ex)[m], (py + ey)[m]))
+        ix, iy, px, py = (np.concatenate([c[i] for c in kids]) for i in range(4))
+    cat = {k: np.concatenate(v) if v else np.zeros((0, 4) if k == "rect" else 0, np.int64) for k, v in out.items()}
+    w = 2 ** np.clip(cat["lx"] - cat["px"], 0, lt)
+    h = 2 ** np.clip(cat["ly"] - cat["py"], 0, lt)
+    return Leaves(cat["ix"], cat["iy"], cat["px"], cat["py"], cat["lx"], cat["ly"], w, h, cat["rect"].reshape(-1, 4))
+
+
+def leaf_cells(lv: Leaves, n: int) -> np.ndarray:
+    """(n, n) index of the tile whose rectangle holds each grid cell, −1 none."""
+    K = int(round(math.log2(n)))
+    out = np.full((n, n), -1, np.int64)
+    for a, b in set(zip(lv.px.tolist(), lv.py.tolist())):
+        m = np.flatnonzero((lv.px == a) & (lv.py == b))
+        lvl = np.full((2 ** b, 2 ** a), -1, np.int64)
+        lvl[lv.iy[m], lv.ix[m]] = m
+        out = np.maximum(out, np.repeat(np.repeat(lvl, n >> b, axis=0), n >> a, axis=1))
+    return out
+
+
+def tile_rects(lv: Leaves, overlap: int, screen_scale: int | None = None, screen_size=None) -> Tiles:
+    """The leaves as :class:`~shadowlab.render.tiles.Tiles`: NDC rectangles extended by
+    ``overlap`` texels, (w + 2·overlap) × (h + 2·overlap) texels, and (``screen_scale``: SMTMM
+    pixel size) screen rectangles in grid pixels."""
+    wx, wy = 2.0 / 2.0 ** lv.px, 2.0 / 2.0 ** lv.py
+    x0 = -1.0 + lv.ix * wx
+    y1 = 1.0 - lv.iy * wy
+    ox, oy = overlap * wx / lv.w, overlap * wy / lv.h
+    screen = None
+    if screen_scale is not None:
+        s = int(screen_scale)
+        W, H = screen_size
+        screen = np.stack([lv.rect[:, 0] * s, lv.rect[:, 1] * s,
+                           np.minimum((lv.rect[:, 2] + 1) * s, W), np.minimum((lv.rect[:, 3] + 1) * s, H)], -1)
+        # the block of the last SMTMM pixel reaches the grid's edge
+        screen[:, 2] = np.where(lv.rect[:, 2] + 1 >= -(-W // s), W, screen[:, 2])
+        screen[:, 3] = np.where(lv.rect[:, 3] + 1 >= -(-H // s), H, screen[:, 3])
+    return Tiles(x0 - ox, y1 - wy - oy, x0 + wx + ox, y1 + oy, lv.w + 2 * overlap, lv.h + 2 * overlap, screen)
+
+
+def memory_texels(w, h, t_max: int, overlap: int = 0) -> dict:
+    """Texels of the tile textures each mode allocates for tiles of w × h texels (module docstring)."""
+    w, h = np.asarray(w, np.int64), np.asarray(h, np.int64)
+    if not len(w):
+        return {m: 0 for m in TILE_MODES}
+    o2 = 2 * int(overlap)
+    k = np.round(np.log2(t_max / np.maximum(w, h))).astype(np.int64)
+    series = {int(x) for x in k.tolist()}
+    shapes = {(int(a), int(b)) for a, b in zip(w.tolist(), h.tolist())}
+    return {"subrect": (t_max + o2) ** 2,
+            "pow2": sum((t_max // 2 ** x + o2) ** 2 for x in series),
+            "exact": sum((a + o2) * (b + o2) for a, b in shapes)}
+
+
+# ----------------------------------------------------------------------------------------------
+# the techniques
+
+def _check_tiling(values: dict, name: str) -> None:
+    t = int(values["t_max"])
+    if t < 1 or t & (t - 1) or t > T_MAX_LIMIT:
+        raise InputError(f"{name}.t_max={t}: expected a power of two from 1 to {T_MAX_LIMIT} "
+                         f"(e.g. 256, 1024, 4096)")
+    if "eta0" in values and not int(values["eta0"]) < int(values["eta1"]):
+        raise InputError(f"{name}: eta0={values['eta0']} must be below eta1={values['eta1']} "
+                         "(η0 = 17, η1 = 22 in [Giegl 2007, §5])")
+
+
+class VirtualMap(Technique):
+    """The shared part: the focused light camera, the tiles' render and the deferred pass."""
+
+    source = SOURCE
+
+    def unsupported(self, spec) -> str | None:
+        for l in spec.lights:
+            if l.kind != "directional":
+                return (f"{self.name}: light {l.name!r} is a {l.kind} light; this virtual shadow map tiles the "
+                        "orthographic map of a directional light focused on the view (the sun of [Giegl 2007, §5]): "
+                        "use hard, pcf, pcss, … for this scene")
+        return None
+
+    def resolve(self, overrides=None):
+        values = super().resolve(overrides)
+        _check_tiling(values, self.name)
+        return values
+
+    def prepare(self, frame, values, ctx):
+        ctx.bias = opaque_bias({**values, "resolution": 0})
+
+    def base(self, frame, light, values):
+        """The virtual map's light camera (one orthographic face)."""
+        if values["focus"] == "scene":
+            fit = SceneSphere()
+        else:
+            n, f = shadow_range(frame.camera, frame.scene, values)
+            fit = FrustumSlice(n, f, float(values["pull"]), bool(values["snap"]), values["focus"])
+        # snapping steps by a texel of the finest virtual map the tiles can make
+        return projection(light, frame.scene, int(values["grid"]) * int(values["t_max"]), fit)
+
+    def plan(self, frame, light, values, base) -> tuple:  # pragma: no cover - interface
+        """(Tiles, cells table or None, stats, per-point AOVs): the tiles to render."""
+        raise NotImplementedError
+
+    def render_light(self, frame, light, values, ctx):
+        base = self.base(frame, light, values)
+        tiles, cells, stats, aovs = self.plan(frame, light, values, base)
+        _, bits = map_settings(frame, light.name, values)
+        tv = render_tiles(frame.scene, light, base, tiles, bits, bool(values["backface"]))
+        gb = frame.gbuffer
+        scr = frame.screen
+        tv = tv.assign(gb.p, mi.Float(scr.x) + 0.5, mi.Float(scr.y) + 0.5, cells, int(values["grid"]))
+        rec = receiver(SubFrame(frame.scene, Points(gb.p, gb.ng, gb.valid)), tv, ctx.bias)
+        if len(tiles):
+            v = depth_test(tv, rec, texel_index(rec["u"]), texel_index(rec["v"]), ctx.bias)
+        else:   # nothing to shadow with: the cleared result texture
+            v = dr.full(mi.Float, 1.0, dr.width(gb.valid))
+        v = dr.round(v * 255.0) * (1.0 / 255.0)                    # the one-byte shadow result texture
+        t = tiles
+        npts = dr.width(gb.valid)
+        if len(t):
+            prov = lambda size, lo, hi: mi.Float(np.log2(size * 2.0 / (hi - lo)).astype(np.float32))  # noqa: E731
+            px, py = (dr.gather(mi.Float, prov(a, lo, hi), tv.point_tile) for a, lo, hi in ((t.nx, t.x0, t.x1), (t.ny, t.y0, t.y1)))
+        else:
+            px = py = dr.zeros(mi.Float, npts)
+        aovs = {**aovs, "tile": dr.select(tv.point_has, mi.Float(tv.point_tile), -1.0), "provided_x": px,
+                "provided_y": py, "texel": rec["texel"]}
+        f0 = base.faces[0]
+        entry = {"resolution": tv.res, "depth_bits": int(bits), "faces": 1, "tiles": len(t), "texels": t.texels,
+                 "near": float(f0.near), "far": float(f0.far), "projection": "orthographic",
+                 "virtual_extent": 2.0 * float(f0.scale)}
+        stats = {**stats, "tiles": len(t), "texels": t.texels, "hit_texels": tv.hit_texels}
+        return LightResult(v, aovs, active=rec["active"], stats=stats, maps=[entry])
+
+    def light_stats(self, frame, light, values, ctx, result):
+        valid = np.asarray(frame.gbuffer.valid.numpy(), bool)
+        tile = result.aovs["tile"].numpy()
+        n = max(int(valid.sum()), 1)
+        return {"unshadowed_fraction": float(((tile < 0) & valid).sum()) / n}
+
+    def summarise(self, frame, values, ctx, lights):
+        return {"shadow_map_texels": sum(st.get("texels", 0) for st in lights.values())}
+
+
+@register
+class VTSM(VirtualMap):
+    """Brute-force virtual tiled shadow map: grid × grid tiles of t_max², applied one after another."""
+
+    name = "vtsm"
+    title = "Virtual tiled shadow map (brute force)"
+    summary = ("the focused map of a directional light as n × n tiles of t_max² texels each, every tile rendered "
+               "and applied by deferred shadowing (the brute-force baseline of fitted virtual shadow maps)")
+    params = VTSM_PARAMS + TILE_BIAS_PARAMS
+
+    def plan(self, frame, light, values, base):
+        n, t = int(values["grid"]), int(values["t_max"])
+        iy, ix = np.divmod(np.arange(n * n), n)
+        w = 2.0 / n
+        tiles = Tiles(-1.0 + ix * w, 1.0 - (iy + 1) * w, -1.0 + (ix + 1) * w, 1.0 - iy * w,
+                      np.full(n * n, t), np.full(n * n, t))
+        mem = 4 * t * t
+        stats = {"memory_bytes": mem, "memory_modes": {m: mem for m in TILE_MODES}, "traversal_depth": int(round(math.log2(n)))}
+        return tiles, np.arange(n * n).reshape(n, n), stats, {}
+
+
+@register
+class FVSM(VirtualMap):
+    """Fitted virtual shadow maps: SMTMM -> SMTG -> pyramid -> kd traversal -> tiles of the needed size."""
+
+    name = "fvsm"
+    title = "Fitted virtual shadow maps"
+    summary = ("per-pixel shadow-map resolution demand (SMTMM) gathered into a tile grid with histograms (SMTG), "
+               "a max pyramid and a kd-tree traversal that renders only the tiles the view needs at the size it "
+               "needs, ξ trading quality for speed down to one ordinary focused map")
+    params = FVSM_PARAMS + TILE_BIAS_PARAMS
+
+    def demand(self, frame, base, values) -> dict:
+        """The per-point demand (Dr.Jit) and the SMTMM, SMTG, pyramid and tiles of one light."""
+        scr = frame.screen
+        f0 = base.faces[0]
+        dx, dy, x, y = footprint(scr, f0)
+        lx, ly = demand_level(dx), demand_level(dy)
+        dr.eval(lx, ly, x, y)
+        n = int(values["grid"])
+        sm = sample_smtmm(scr, x, y, lx, ly, int(values["smtmm_scale"]))
+        g = tile_grid(sm, n, int(values["eta0"]), int(values["eta1"]))
+        cdx, cdy, dropped = cell_demand(g, float(values["discard"]))
+        pyr = pyramid(cdx, cdy, g.count, g.rect)
+        lv = traverse(pyr, int(values["xi"]), int(values["t_max"]))
+        return {"lx": lx, "ly": ly, "x": x, "y": y, "smtmm": sm, "grid": g, "dropped": dropped, "pyramid": pyr,
+                "leaves": lv}
+
+    def plan(self, frame, light, values, base):
+        d = self.demand(frame, base, values)
+        lv, n, scr = d["leaves"], int(values["grid"]), frame.screen
+        o = int(values["overlap"])
+        rect_scale = d["smtmm"].scale if values["apply"] == "rect" else None
+        tiles = tile_rects(lv, o, rect_scale, (scr.width, scr.height))
+        mem = {m: 4 * v for m, v in memory_texels(lv.w, lv.h, int(values["t_max"]), o).items()}
+        root = d["pyramid"]
+        stats = {"memory_bytes": mem[values["tile_mode"]] if len(lv) else 0,
+                 "memory_modes": mem if len(lv) else {m: 0 for m in TILE_MODES},
+                 "traversal_depth": int(np.max(np.maximum(lv.px, lv.py))) if len(lv) else 0,
+                 "demand": [int(root.lx[0, 0][0, 0]), int(root.ly[0, 0][0, 0])],
+                 "smtmm": [int(d["smtmm"].shape[1]), int(d["smtmm"].shape[0])],
+                 "discarded_pixels": int(d["dropped"].sum())}
+        cx = mi.Int32(dr.clip(dr.floor((d["x"] + 1.0) * 0.5 * n), 0, n - 1))
+        cy = mi.Int32(dr.clip(dr.floor((1.0 - d["y"]) * 0.5 * n), 0, n - 1))
+        aovs = {"demand_x": mi.Float(d["lx"]), "demand_y": mi.Float(d["ly"]), "cell": mi.Float(cy * n + cx)}
+        return tiles, leaf_cells(lv, n), stats, aovs
+
+
+__doc__ += ("\n\nParameters of ``vtsm`` (generated from the declaration):\n\n" + param_table_markdown(VTSM)
+            + "\n\nParameters of ``fvsm`` (generated from the declaration):\n\n" + param_table_markdown(FVSM))
