@@ -412,11 +412,10 @@ def tile_rects(lv: Leaves, overlap: int, screen_scale: int | None = None, screen
     if screen_scale is not None:
         s = int(screen_scale)
         W, H = screen_size
-        screen = np.stack([lv.rect[:, 0] * s, lv.rect[:, 1] * s,
-                           np.minimum((lv.rect[:, 2] + 1) * s, W), np.minimum((lv.rect[:, 3] + 1) * s, H)], -1)
-        # the block of the last SMTMM pixel reaches the grid's edge
-        screen[:, 2] = np.where(lv.rect[:, 2] + 1 >= -(-W // s), W, screen[:, 2])
-        screen[:, 3] = np.where(lv.rect[:, 3] + 1 >= -(-H // s), H, screen[:, 3])
+        # an SMTMM pixel stands for its s × s block; a pixel of a neighbouring block may still fall
+        # in the tile, so the rectangle takes one more block on every side
+        screen = np.stack([np.maximum(lv.rect[:, 0] - 1, 0) * s, np.maximum(lv.rect[:, 1] - 1, 0) * s,
+                           np.minimum((lv.rect[:, 2] + 2) * s, W), np.minimum((lv.rect[:, 3] + 2) * s, H)], -1)
     return Tiles(x0 - ox, y1 - wy - oy, x0 + wx + ox, y1 + oy, lv.w + 2 * overlap, lv.h + 2 * overlap, screen)
 
 
@@ -490,33 +489,31 @@ class VirtualMap(Technique):
         gb = frame.gbuffer
         scr = frame.screen
         tv = tv.assign(gb.p, mi.Float(scr.x) + 0.5, mi.Float(scr.y) + 0.5, cells, int(values["grid"]))
-        rec = receiver(SubFrame(frame.scene, Points(gb.p, gb.ng, gb.valid)), tv, ctx.bias)
-        if len(tiles):
-            v = depth_test(tv, rec, texel_index(rec["u"]), texel_index(rec["v"]), ctx.bias)
-        else:   # nothing to shadow with: the cleared result texture
-            v = dr.full(mi.Float, 1.0, dr.width(gb.valid))
-        v = dr.round(v * 255.0) * (1.0 / 255.0)                    # the one-byte shadow result texture
-        t = tiles
         npts = dr.width(gb.valid)
+        t = tiles
         if len(t):
+            rec = receiver(SubFrame(frame.scene, Points(gb.p, gb.ng, gb.valid)), tv, ctx.bias)
+            active = rec["active"]
+            v = dr.select(active, depth_test(tv, rec, texel_index(rec["u"]), texel_index(rec["v"]), ctx.bias), 1.0)
             prov = lambda size, lo, hi: mi.Float(np.log2(size * 2.0 / (hi - lo)).astype(np.float32))  # noqa: E731
-            px, py = (dr.gather(mi.Float, prov(a, lo, hi), tv.point_tile) for a, lo, hi in ((t.nx, t.x0, t.x1), (t.ny, t.y0, t.y1)))
-        else:
-            px = py = dr.zeros(mi.Float, npts)
-        aovs = {**aovs, "tile": dr.select(tv.point_has, mi.Float(tv.point_tile), -1.0), "provided_x": px,
-                "provided_y": py, "texel": rec["texel"]}
+            px, py = (dr.select(tv.point_has, dr.gather(mi.Float, prov(a, lo, hi), tv.point_tile), 0.0)
+                      for a, lo, hi in ((t.nx, t.x0, t.x1), (t.ny, t.y0, t.y1)))
+            texel = dr.select(active, rec["texel"], 0.0)
+        else:   # nothing to shadow with: the cleared result texture
+            active = dr.full(mi.Bool, False, npts)
+            v = dr.full(mi.Float, 1.0, npts)
+            px = py = texel = dr.zeros(mi.Float, npts)
+        v = dr.round(v * 255.0) * (1.0 / 255.0)                    # the one-byte shadow result texture
+        aovs = {**aovs, "tile": dr.select(active, mi.Float(tv.point_tile), -1.0), "provided_x": px,
+                "provided_y": py, "texel": texel}
         f0 = base.faces[0]
         entry = {"resolution": tv.res, "depth_bits": int(bits), "faces": 1, "tiles": len(t), "texels": t.texels,
                  "near": float(f0.near), "far": float(f0.far), "projection": "orthographic",
                  "virtual_extent": 2.0 * float(f0.scale)}
-        stats = {**stats, "tiles": len(t), "texels": t.texels, "hit_texels": tv.hit_texels}
-        return LightResult(v, aovs, active=rec["active"], stats=stats, maps=[entry])
-
-    def light_stats(self, frame, light, values, ctx, result):
-        valid = np.asarray(frame.gbuffer.valid.numpy(), bool)
-        tile = result.aovs["tile"].numpy()
-        n = max(int(valid.sum()), 1)
-        return {"unshadowed_fraction": float(((tile < 0) & valid).sum()) / n}
+        nvalid = max(int(dr.count(gb.valid)[0]), 1)
+        stats = {**stats, "tiles": len(t), "texels": t.texels, "hit_texels": tv.hit_texels,
+                 "unshadowed_fraction": int(dr.count(gb.valid & ~active)[0]) / nvalid}
+        return LightResult(v, aovs, stats=stats, maps=[entry])
 
     def summarise(self, frame, values, ctx, lights):
         return {"shadow_map_texels": sum(st.get("texels", 0) for st in lights.values())}
