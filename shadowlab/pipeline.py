@@ -33,7 +33,7 @@ from .render.gbuffer import vec_numpy
 from .render.shading import compose
 from .report import build
 from .report.frames import build_frames
-from .report.images import cascade_colours
+from .report.images import cascade_colours, tile_colours
 from .report.outdir import claim_dir
 from .scene import load
 from .scene.spec import builtin_dir
@@ -238,7 +238,29 @@ def technique_metrics(frame, truth, result) -> tuple[dict, dict, dict]:
     aliasing = {l.name: result.aovs[f"{l.name}.aliasing"] for l in frame.lights if f"{l.name}.aliasing" in result.aovs}
     if aliasing:                              # texels per pixel, [Buljan 2020, §2.5]: shown as a heat map
         imgs["aliasing"] = aliasing
+    imgs.update(virtual_map_images(frame, result, mask, {ln: x[0] for ln, x in lights.items()}))
     return m, per_light, imgs
+
+
+def virtual_map_images(frame, result, mask, vis) -> dict:
+    """The report images of vtsm/fvsm's AOVs [Giegl 2007, §4]: {"tile": {light: H×W×3 colours in
+    [0, 1]} (``images.tile_colours`` × visibility, with the SMTG grid of the ``cell`` AOV on the
+    surface pixels ``mask``), "demand_x", "demand_y", "provided_x", "provided_y": {light: H×W log₂
+    levels, −1 off the surface (and, for provided, where no tile wrote the pixel)}}; empty for
+    other techniques."""
+    out = {}
+    for l in frame.lights:
+        a = {k: result.aovs[f"{l.name}.{k}"] for k in ("tile", "cell", "demand_x", "demand_y", "provided_x",
+                                                       "provided_y") if f"{l.name}.{k}" in result.aovs}
+        if "tile" not in a:
+            continue
+        cell = np.where(mask, a["cell"], -1) if "cell" in a else None
+        out.setdefault("tile", {})[l.name] = tile_colours(a["tile"], cell, vis[l.name]) / 255.0
+        has_tile = mask & (a["tile"] >= 0)
+        for k in ("demand_x", "demand_y", "provided_x", "provided_y"):
+            if k in a:
+                out.setdefault(k, {})[l.name] = np.where(has_tile if k.startswith("provided") else mask, a[k], -1.0)
+    return out
 
 
 def error_bands(frame, truth, result) -> dict:

@@ -68,6 +68,11 @@ class Tiles:
     def __len__(self) -> int:
         return len(self.x0)
 
+    def subset(self, lo: int, hi: int) -> "Tiles":
+        """Tiles lo … hi − 1."""
+        return Tiles(self.x0[lo:hi], self.y0[lo:hi], self.x1[lo:hi], self.y1[lo:hi], self.nx[lo:hi], self.ny[lo:hi],
+                     None if self.screen is None else self.screen[lo:hi])
+
     @property
     def offsets(self) -> np.ndarray:
         """(T + 1,) first texel of each tile in the concatenated texel array, then the total."""
@@ -133,45 +138,15 @@ class TiledView:
         """World points -> (x, y, light-space z) in the base map's NDC (Dr.Jit)."""
         return face_ndc(self.proj.faces[0], p)
 
-    def assign(self, p, px=None, py=None, cells=None, n: int = 1) -> "TiledView":
-        """This view bound to the tile each point reads: the last tile (in application order)
-        whose texture holds the point's NDC position and, where tiles have screen rectangles,
-        whose rectangle holds the point's pixel (``px``, ``py``: continuous pixel coordinates).
+    def bind(self, tile) -> "TiledView":
+        """This view bound to the tile each point reads (``tile``: Int32 per point, −1 none, as
+        :func:`assign_tiles` gives, indices into this view's tiles)."""
+        tile = mi.Int32(tile)
+        return replace(self, point_tile=mi.UInt32(dr.maximum(tile, 0)), point_has=tile >= 0)
 
-        ``cells``: (n, n) int table of the tile to try first for each cell of an n×n grid over
-        the NDC square (−1 none); the point's cell and its 8 neighbours' tiles are the
-        candidates (a tile's overlap reaches at most into the adjacent cells). None: every tile
-        is tried (a loop over the tiles; for tests and small tile counts)."""
-        x, y, _ = self.ndc(p)
-        T = len(self.tiles)
-        if T == 0:
-            return replace(self, point_tile=dr.zeros(mi.UInt32, dr.width(x)), point_has=dr.full(mi.Bool, False, dr.width(x)))
-        best = mi.Int32(-1)
-        if cells is None:
-            cand = [mi.Int32(k) for k in range(T)]
-        else:
-            cells = np.asarray(cells, np.int32)
-            tab = mi.Int32(cells.ravel())
-            cx = mi.Int32(dr.clip(dr.floor((x + 1.0) * 0.5 * n), 0, n - 1))
-            cy = mi.Int32(dr.clip(dr.floor((1.0 - y) * 0.5 * n), 0, n - 1))
-            cand = []
-            for dy in (-1, 0, 1):
-                for dx in (-1, 0, 1):
-                    ok = (cx + dx >= 0) & (cx + dx < n) & (cy + dy >= 0) & (cy + dy < n)
-                    k = dr.gather(mi.Int32, tab, mi.UInt32(dr.clip((cy + dy) * n + cx + dx, 0, n * n - 1)))
-                    cand.append(dr.select(ok, k, -1))
-        scr = self.tiles.screen
-        st = [mi.Float(np.asarray(scr[:, c], np.float32)) for c in range(4)] if scr is not None and px is not None else None
-        for k in cand:
-            kk = mi.UInt32(dr.maximum(k, 0))
-            g = lambda name: dr.gather(mi.Float, self._tab(name), kk)  # noqa: E731
-            inside = (k >= 0) & (x >= g("x0")) & (x <= g("x1")) & (y >= g("y0")) & (y <= g("y1"))
-            if st is not None:
-                sg = [dr.gather(mi.Float, a, kk) for a in st]
-                inside &= (px >= sg[0]) & (px < sg[2]) & (py >= sg[1]) & (py < sg[3])
-            best = dr.select(inside & (k > best), k, best)
-        dr.eval(best)
-        return replace(self, point_tile=mi.UInt32(dr.maximum(best, 0)), point_has=best >= 0)
+    def assign(self, p, px=None, py=None, cells=None, n: int = 1) -> "TiledView":
+        """:meth:`bind` to :func:`assign_tiles` of this view's own tiles."""
+        return self.bind(assign_tiles(self.proj.faces[0], self.tiles, p, px, py, cells, n))
 
     def lookup(self, p):
         """:meth:`LightView.lookup` for the points :meth:`assign` bound: ``face`` is the point's
@@ -199,6 +174,62 @@ class TiledView:
         iy = mi.UInt32(dr.clip(mi.Int32(iy), 0, mi.Int32(ny) - 1))
         idx = dr.gather(mi.UInt32, self._tab("off"), face) + iy * nx + ix
         return dr.gather(mi.Float, getattr(self, name), idx)
+
+
+def assign_tiles(face, tiles: Tiles, p, px=None, py=None, cells=None, n: int = 1):
+    """The tile each point reads (Int32, −1 none): the last tile (in application order) whose
+    texture holds the point's NDC position in the map ``face`` and, where tiles have screen
+    rectangles, whose rectangle holds the point's pixel (``px``, ``py``: continuous pixel
+    coordinates).
+
+    ``cells``: (n, n) int table of the tile that holds each cell of an n×n grid over the NDC
+    square (−1 none); the point's cell and its 8 neighbours' tiles are the candidates (a tile's
+    overlap reaches at most into the adjacent cells). None: every tile is tried (a loop over
+    the tiles; for tests and small tile counts)."""
+    x, y, _ = face_ndc(face, p)
+    T = len(tiles)
+    if T == 0:
+        return dr.full(mi.Int32, -1, dr.width(x))
+    best = mi.Int32(-1)
+    if cells is None:
+        cand = [mi.Int32(k) for k in range(T)]
+    else:
+        tab = mi.Int32(np.asarray(cells, np.int32).ravel())
+        cx = mi.Int32(dr.clip(dr.floor((x + 1.0) * 0.5 * n), 0, n - 1))
+        cy = mi.Int32(dr.clip(dr.floor((1.0 - y) * 0.5 * n), 0, n - 1))
+        cand = []
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                ok = (cx + dx >= 0) & (cx + dx < n) & (cy + dy >= 0) & (cy + dy < n)
+                k = dr.gather(mi.Int32, tab, mi.UInt32(dr.clip((cy + dy) * n + cx + dx, 0, n * n - 1)))
+                cand.append(dr.select(ok, k, -1))
+    rect = [mi.Float(np.asarray(a, np.float32)) for a in (tiles.x0, tiles.y0, tiles.x1, tiles.y1)]
+    scr = tiles.screen
+    st = [mi.Float(np.asarray(scr[:, c], np.float32)) for c in range(4)] if scr is not None and px is not None else None
+    for k in cand:
+        kk = mi.UInt32(dr.maximum(k, 0))
+        x0, y0, x1, y1 = (dr.gather(mi.Float, a, kk) for a in rect)
+        inside = (k >= 0) & (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+        if st is not None:
+            sg = [dr.gather(mi.Float, a, kk) for a in st]
+            inside &= (px >= sg[0]) & (px < sg[2]) & (py >= sg[1]) & (py < sg[3])
+        best = dr.select(inside & (k > best), k, best)
+    dr.eval(best)
+    return best
+
+
+def tile_groups(tiles: Tiles, chunk: int | None = None) -> list:
+    """Consecutive tile ranges [lo, hi) of at most ``chunk`` texels each (a larger tile alone):
+    the wavefronts a frame's tiles are rendered and applied in."""
+    chunk = CHUNK if chunk is None else int(chunk)
+    off = tiles.offsets
+    out, lo = [], 0
+    while lo < len(tiles):
+        hi = int(np.searchsorted(off, off[lo] + chunk, side="right")) - 1
+        hi = max(hi, lo + 1)
+        out.append((lo, min(hi, len(tiles))))
+        lo = out[-1][1]
+    return out
 
 
 def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backface: bool = False) -> TiledView:

@@ -147,6 +147,15 @@ def _check_metric_dict(d, key: str) -> None:
         _number(v, f"{key}.{m}")
 
 
+#: optional per-light AOV images of a technique (``run.images.techniques.<name>.<key>.<light>``)
+#: and their channels (0: H×W): ``cascade``: H×W×3 colours in [0, 1] (``images.cascade_colours``);
+#: ``aliasing``: texel / pixel footprint (csm); ``tile``: H×W×3 colours in [0, 1]
+#: (``images.tile_colours``, with the SMTG grid); ``demand_x``, ``demand_y``, ``provided_x``,
+#: ``provided_y``: log₂ levels of the virtual map, −1 = none ([Giegl 2007, §4.3, §4.10])
+_OPTIONAL_AOVS = {"cascade": (3,), "aliasing": (0,), "tile": (3,), "demand_x": (0,), "demand_y": (0,),
+                  "provided_x": (0,), "provided_y": (0,)}
+
+
 def validate(run: Mapping, need_images: bool = True) -> dict:
     """Check a run dict; raise ``InputError`` naming the bad key. Returns the images as float64
     arrays: ``{"truth": {...}, "mitsuba": arr|None, "techniques": {...}}`` (empty dict when
@@ -204,12 +213,10 @@ def validate(run: Mapping, need_images: bool = True) -> dict:
             raise InputError(f"{where}.vis.{extra[0]}: {extra[0]!r} is not in run.lights {list(lights)}")
         vis = {ln: _image(_get(vis_d, ln, f"{where}.vis"), f"{where}.vis.{ln}", hw, (0, 1, 3)) for ln in lights}
         out = {"shaded": shaded, "vis": vis}
-        if "cascade" in d:                  # optional: a cascade-index AOV coloured by images.cascade_colours
-            cas = _mapping(d["cascade"], f"{where}.cascade")
-            out["cascade"] = {ln: _image(cas[ln], f"{where}.cascade.{ln}", hw, (3,)) for ln in lights if ln in cas}
-        if "aliasing" in d:                 # optional: shadow-map texel / pixel footprint per pixel (csm)
-            al = _mapping(d["aliasing"], f"{where}.aliasing")
-            out["aliasing"] = {ln: _image(al[ln], f"{where}.aliasing.{ln}", hw, (0,)) for ln in lights if ln in al}
+        for key, chans in _OPTIONAL_AOVS.items():   # optional per-light AOV images (see _OPTIONAL_AOVS)
+            if key in d:
+                a = _mapping(d[key], f"{where}.{key}")
+                out[key] = {ln: _image(a[ln], f"{where}.{key}.{ln}", hw, chans) for ln in lights if ln in a}
         return out
 
     out = {"truth": frame(_get(imgs, "truth", "run.images"), "run.images.truth")}
@@ -467,6 +474,79 @@ def _ratio_legend(scale: float) -> str:
             f'<div class="ticks"><span>2<sup>&minus;{s}</sup></span><span>1</span><span>2<sup>{s}</sup></span></div>')
 
 
+def _level_legend(lo: int, hi: int) -> str:
+    mid = _fmt((lo + hi) / 2)
+    return ('<img class="cbar" src="img/colorbar.png" alt="colour scale">'
+            f'<div class="ticks"><span>&le;{lo}</span><span>{mid}</span><span>&ge;{hi}</span></div>'
+            '<div class="ticks"><span>log₂ texels across the virtual map</span></div>')
+
+
+def _under_legend(scale: int) -> str:
+    return ('<img class="cbar" src="img/colorbar_pos.png" alt="colour scale">'
+            f'<div class="ticks"><span>0 (met)</span><span>{_fmt(scale / 2)}</span><span>&ge;{scale}</span></div>'
+            '<div class="ticks"><span>log₂ levels too coarse</span></div>')
+
+
+def _colour_png(rgb) -> bytes:
+    """PNG of an H×W×3 colour image in [0, 1] (the cascade and tile AOV images)."""
+    return _im.encode_png(np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8))
+
+
+def _axis_row(head: str, cells: list[str]) -> str:
+    """A grid row: the header cell, one cell per axis, empty cells up to the table's three columns."""
+    return f'<tr><th class="row">{head}</th>' + "".join(cells) + "<td></td>" * (3 - len(cells)) + "</tr>"
+
+
+def _tile_row(rgb, ln: str, name: str, fname: str, put) -> str:
+    """The tile image with the SMTG grid ([Giegl 2007, §4.4, §4.10])."""
+    f = put(fname.format("tile"), _colour_png(rgb))
+    return _axis_row(f"<b>{_e(ln)}</b> tiles<br>a colour per tile id (the palette repeats every "
+                     f"{len(_im.TILE_COLOURS)} ids), grey = no tile wrote the pixel, × visibility; white lines "
+                     "(where the technique has a <code>cell</code> AOV: fvsm): the SMTG grid cells "
+                     "[Giegl 2007, §4.4]",
+                     [f"<td>{_img_tag(f, f'{name} tiles {ln}')}</td>"])
+
+
+def _demand_row(demand: dict, ln: str, name: str, fname: str, put) -> str:
+    """The demand per axis ({axis: levels}, [Giegl 2007, §4.3]) on one shared level range."""
+    lo, hi = _im.level_range(*demand.values())
+    cells = []
+    for a, d in demand.items():
+        f = put(fname.format(f"demand_{a}"), _im.encode_png(_im.level_heatmap(d, lo=lo, hi=hi)))
+        cells.append(f"<td>{a}: {_img_tag(f, f'{name} demand {a} {ln}')}{_level_legend(lo, hi)}</td>")
+    return _axis_row(f"<b>{_e(ln)}</b> required resolution per axis (demand L, SMTMM [Giegl 2007, §4.3]): log₂ "
+                     "texels of the virtual shadow map across it that give the pixel one texel; grey = no surface",
+                     cells)
+
+
+def _under_row(under: dict, ln: str, name: str, fname: str, put) -> str:
+    """The undersampling per axis ({axis: max(demand − provided, 0)}, [Giegl 2007, §4.10])."""
+    _, sc = _im.level_range(*under.values(), lo=0)
+    put("colorbar_pos.png", _im.colorbar_png(signed=False))
+    cells = []
+    for a, u in under.items():
+        f = put(fname.format(f"under_{a}"), _im.encode_png(_im.undersampling_heatmap(u, scale=sc)))
+        cells.append(f"<td>{a}: {_img_tag(f, f'{name} undersampling {a} {ln}')}{_under_legend(sc)}</td>")
+    return _axis_row(f"<b>{_e(ln)}</b> undersampling per axis: max(demand − provided, 0), log₂ levels by which "
+                     "the pixel's tile is coarser than it needs [Giegl 2007, §4.10]; white (0) = the tile meets the "
+                     "pixel's demand; grey = no surface or no tile", cells)
+
+
+def _virtual_map_rows(ti: Mapping, ln: str, name: str, fname: str, put) -> list[str]:
+    """HTML rows of a virtual map's AOVs of light ``ln`` ([Giegl 2007, §4]), those present: the
+    tile image, the demand per axis and the undersampling per axis; ``fname``: the PNG name with
+    ``{}`` for the kind; ``put`` writes a PNG and returns its name."""
+    rows = [_tile_row(ti["tile"][ln], ln, name, fname, put)] if ln in ti.get("tile", {}) else []
+    demand = {a: ti[f"demand_{a}"][ln] for a in "xy" if ln in ti.get(f"demand_{a}", {})}
+    if demand:
+        rows.append(_demand_row(demand, ln, name, fname, put))
+    under = {a: _im.undersampling(d, ti[f"provided_{a}"][ln]) for a, d in demand.items()
+             if ln in ti.get(f"provided_{a}", {})}
+    if under:
+        rows.append(_under_row(under, ln, name, fname, put))
+    return rows
+
+
 def _metric_line(d: Mapping) -> str:
     return " · ".join(f"{_e(k)} {_e(_fmt(v))}" for k, v in d.items())
 
@@ -573,8 +653,7 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
                 f"<td>{_img_tag(ef, f'signed error {name} {ln}')}{_legend(vis_scale[ln])}</td></tr>"
             )
             if ln in ti.get("cascade", {}):
-                cf = put(f"{tag}_cascade_{j}_{_slug(ln)}.png", _im.encode_png(
-                    np.round(np.clip(ti["cascade"][ln], 0, 1) * 255).astype(np.uint8)))
+                cf = put(f"{tag}_cascade_{j}_{_slug(ln)}.png", _colour_png(ti["cascade"][ln]))
                 p.append(f'<tr><th class="row"><b>{_e(ln)}</b> cascades<br>red, green, blue, … = cascade 0, 1, 2, …'
                          f" (blended in the bands, × visibility)</th><td>{_img_tag(cf, f'{name} cascades {ln}')}"
                          "</td><td></td><td></td></tr>")
@@ -587,6 +666,7 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
                          "log₂: red = a texel covers several pixels (undersampled), blue = several texels per "
                          f"pixel, grey = no cascade</th><td>{_img_tag(af, f'{name} aliasing {ln}')}{_ratio_legend(sc)}</td>"
                          "<td></td><td></td></tr>")
+            p += _virtual_map_rows(ti, ln, name, f"{tag}_{{}}_{j}_{_slug(ln)}.png", put)
         sf = put(f"{tag}_shaded.png", _im.shaded_png(ti["shaded"], exposure))
         sef = put(f"{tag}_shaded_err.png", _im.encode_png(_im.signed_error_heatmap(shaded_err[name], shaded_scale)))
         p.append(
@@ -656,7 +736,8 @@ def build(out_dir, run: Mapping, *, force: bool = False, protected=(), kind: str
     ``run`` = {"scene", "resolution": [W, H], "reference": {"spp", "max_std_error", ...},
     "lights": [names], "images": {"truth": {"shaded": H×W×3, "vis": {light: H×W}},
     "mitsuba": H×W×3 (optional), "techniques": {name: {"shaded", "vis", optional "cascade": {light:
-    H×W×3 colours in [0, 1] of a cascade-index AOV, ``images.cascade_colours``}}}},
+    H×W×3 colours in [0, 1] of a cascade-index AOV, ``images.cascade_colours``}, optional "tile",
+    "demand_x", … (see ``_OPTIONAL_AOVS``)}}},
     "techniques": {name: {"params", "time_s", "metrics", "per_light"}}, ...extra JSON keys}.
     Bad input raises ``InputError`` naming the key, before anything is written.
 

@@ -12,6 +12,16 @@ Conventions
   Slika 4.3/4.5], then yellow, magenta, cyan, orange, violet; a blend band mixes the two cascades'
   colours by the blend weight; points of no cascade are grey; optionally darkened by the
   visibility, as Code A.14's visualisation (colour × shadow factor).
+- Tile images (``vtsm``/``fvsm``'s ``tile`` AOV, [Giegl 2007, §3, §4.10]): a colour per tile id from
+  a fixed palette (Kelly's colours of maximum contrast, without white, black and grey), cycling
+  over the ids (id k and k + 19 share a colour); grey where no tile wrote the pixel (−1); darkened
+  by the visibility like the cascade image; optionally the SMTG grid ([Giegl 2007, §4.4], the
+  ``cell`` AOV) as one-pixel white lines: a pixel is on a line where its right or lower neighbour
+  lies in another cell (pixels of no cell, −1, draw none).
+- Level heat maps (``fvsm``'s ``demand_x``/``demand_y``, log₂ texels across the virtual map,
+  [Giegl 2007, §4.3]): blue (low) → white → red (high) between two integer levels, the colour bar's
+  colours; the undersampling max(demand − provided, 0) white (the tile meets the demand) → red.
+  Negative levels (−1: no surface / no tile) and NaN are grey.
 
 >>> import numpy as np
 >>> signed_error_heatmap(np.array([[-1.0, 0.0, 1.0]]), scale=1.0)[0].tolist()
@@ -38,6 +48,14 @@ __all__ = [
     "CASCADE_COLOURS",
     "cascade_colours",
     "cascade_png",
+    "TILE_COLOURS",
+    "tile_colours",
+    "tile_png",
+    "cell_edges",
+    "level_range",
+    "level_heatmap",
+    "undersampling",
+    "undersampling_heatmap",
 ]
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries, linear
@@ -100,25 +118,28 @@ def signed_error_heatmap(err, scale: float | None = None) -> np.ndarray:
     return out
 
 
-def colorbar(width: int = 256, height: int = 12) -> np.ndarray:
-    """uint8 height×width×3 legend of the heat-map colours, from −scale (left) to +scale (right).
+def colorbar(width: int = 256, height: int = 12, *, signed: bool = True) -> np.ndarray:
+    """uint8 height×width×3 legend of the heat-map colours, from −scale (left) to +scale (right);
+    ``signed=False``: its positive half only, 0 (white, left) to +scale (red, right).
 
     The colours do not depend on the scale; the report prints the range next to it.
 
     >>> colorbar(3, 1)[0].tolist()
     [[33, 102, 172], [255, 255, 255], [178, 24, 43]]
+    >>> colorbar(2, 1, signed=False)[0].tolist()
+    [[255, 255, 255], [178, 24, 43]]
     """
-    ramp = np.linspace(-1.0, 1.0, int(width))[None, :].repeat(int(height), axis=0)
+    ramp = np.linspace(-1.0 if signed else 0.0, 1.0, int(width))[None, :].repeat(int(height), axis=0)
     return signed_error_heatmap(ramp, scale=1.0)
 
 
-def colorbar_png(width: int = 256, height: int = 12) -> bytes:
-    """PNG bytes of ``colorbar(width, height)``.
+def colorbar_png(width: int = 256, height: int = 12, *, signed: bool = True) -> bytes:
+    """PNG bytes of ``colorbar(width, height, signed=signed)``.
 
     >>> colorbar_png()[:4]
     b'\\x89PNG'
     """
-    return encode_png(colorbar(width, height))
+    return encode_png(colorbar(width, height, signed=signed))
 
 
 def visibility_png(vis) -> bytes:
@@ -195,3 +216,127 @@ def cascade_png(index, weight=None, visibility=None) -> bytes:
     b'\\x89PNG'
     """
     return encode_png(cascade_colours(index, weight, visibility))
+
+
+#: tile colours (sRGB 8-bit): Kelly's 22 colours of maximum contrast without white, black and grey
+TILE_COLOURS = np.array([[243, 195, 0], [135, 86, 146], [243, 132, 0], [161, 202, 241], [190, 0, 50],
+                         [194, 178, 128], [0, 136, 86], [230, 143, 172], [0, 103, 165], [249, 147, 121],
+                         [96, 78, 151], [246, 166, 0], [179, 68, 108], [220, 211, 0], [136, 45, 23],
+                         [141, 182, 0], [101, 69, 34], [226, 88, 34], [43, 61, 38]], np.uint8)
+_LINE = (255, 255, 255)
+
+
+def _labels(a) -> np.ndarray:
+    """A label AOV (H×W or H×W×1, float) -> int64 H×W, −1 where negative or not finite."""
+    x = np.asarray(a, np.float64)
+    if x.ndim == 3 and x.shape[2] == 1:
+        x = x[:, :, 0]
+    if x.ndim != 2:
+        raise InputError(f"expected an H×W label image, got shape {x.shape}")
+    ok = np.isfinite(x) & (x >= -0.5)
+    return np.where(ok, np.rint(np.where(ok, x, -1.0)), -1).astype(np.int64)
+
+
+def cell_edges(cell) -> np.ndarray:
+    """bool H×W: the pixels whose right or lower neighbour lies in another SMTG cell
+    ([Giegl 2007, §4.4]); pixels of no cell (−1) draw no line and end none.
+
+    >>> cell_edges(np.array([[0, 0, 1], [2, 2, 3], [2, 2, 3]])).astype(int).tolist()
+    [[1, 1, 1], [0, 1, 0], [0, 1, 0]]
+    """
+    c = _labels(cell)
+    has = c >= 0
+    out = np.zeros(c.shape, bool)
+    out[:, :-1] |= (c[:, :-1] != c[:, 1:]) & has[:, :-1] & has[:, 1:]
+    out[:-1] |= (c[:-1] != c[1:]) & has[:-1] & has[1:]
+    return out
+
+
+def tile_colours(tile, cell=None, visibility=None, *, line=_LINE) -> np.ndarray:
+    """H×W×3 uint8 image of a tile index AOV ([Giegl 2007, §3, §4.10]): ``TILE_COLOURS[id mod 19]``,
+    grey where −1 (no tile wrote the pixel); ``visibility`` multiplies the colour (as
+    :func:`cascade_colours`); ``cell``: the SMTG cell AOV, drawn as ``line``-coloured lines where
+    it changes between neighbouring pixels (:func:`cell_edges`, [Giegl 2007, §4.4]).
+
+    >>> tile_colours(np.array([[0, 1, -1]])).tolist()
+    [[[243, 195, 0], [135, 86, 146], [128, 128, 128]]]
+    >>> tile_colours(np.array([[0, 0]]), cell=np.array([[3, 4]]), visibility=np.array([[0.5, 0.5]])).tolist()
+    [[[255, 255, 255], [122, 98, 0]]]
+    """
+    idx = _labels(tile)
+    a = TILE_COLOURS[np.maximum(idx, 0) % len(TILE_COLOURS)].astype(np.float64)
+    if visibility is not None:
+        a = a * np.clip(np.asarray(visibility, np.float64).reshape(idx.shape), 0.0, 1.0)[..., None]
+    a = np.where((idx < 0)[..., None], _NAN_GREY.astype(np.float64), a)
+    if cell is not None:
+        a = np.where(cell_edges(np.asarray(cell).reshape(idx.shape))[..., None], np.asarray(line, np.float64), a)
+    return np.round(a).astype(np.uint8)
+
+
+def tile_png(tile, cell=None, visibility=None, *, line=_LINE) -> bytes:
+    """PNG bytes of :func:`tile_colours`.
+
+    >>> tile_png(np.zeros((2, 2)))[:4]
+    b'\\x89PNG'
+    """
+    return encode_png(tile_colours(tile, cell, visibility, line=line))
+
+
+def _levels(a) -> np.ndarray:
+    """Float H×W levels with NaN where negative (−1: none) or not finite."""
+    x = np.asarray(a, np.float64)
+    return np.where(np.isfinite(x) & (x >= 0), x, np.nan)
+
+
+def level_range(*levels, percentile: float = 99.0, lo: int | None = None) -> tuple[int, int]:
+    """Integer colour range (lo, hi) of level images ([Giegl 2007, §4.3]: log₂ texels): from the
+    lowest level (or ``lo``) to the ``percentile`` of their levels (≥ 0, finite), rounded out;
+    hi > lo. (0, 1) when there are none.
+
+    >>> level_range(np.array([[3.0, 5.0, -1.0]]), np.array([[9.0]]), percentile=100)
+    (3, 9)
+    >>> level_range(np.zeros((2, 2)), lo=0)
+    (0, 1)
+    """
+    v = np.concatenate([_levels(a).ravel() for a in levels]) if levels else np.zeros(0)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return (0 if lo is None else int(lo)), (1 if lo is None else int(lo) + 1)
+    a = int(np.floor(v.min())) if lo is None else int(lo)
+    b = int(np.ceil(np.percentile(v, percentile)))
+    return a, max(b, a + 1)
+
+
+def level_heatmap(level, *, lo: float, hi: float) -> np.ndarray:
+    """uint8 H×W×3 heat map of a level image: blue at ``lo`` → white → red at ``hi`` (the colour
+    bar's colours, saturating outside), grey where −1 or NaN (no surface).
+
+    >>> level_heatmap(np.array([[2.0, 6.0, 10.0, -1.0]]), lo=2, hi=10)[0].tolist()
+    [[33, 102, 172], [255, 255, 255], [178, 24, 43], [128, 128, 128]]
+    """
+    if not hi > lo:
+        raise InputError(f"level_heatmap: expected hi > lo, got lo={lo}, hi={hi}")
+    t = 2.0 * (_levels(level) - lo) / (hi - lo) - 1.0
+    return signed_error_heatmap(t, scale=1.0)
+
+
+def undersampling(demand, provided) -> np.ndarray:
+    """Per pixel max(demand − provided, 0) in log₂ levels ([Giegl 2007, §4.3, §4.10]): 0 = the
+    pixel's tile gives at least the virtual resolution it needs, k = 2^k times too coarse; NaN
+    where either level is missing (−1 or NaN).
+
+    >>> undersampling(np.array([[12.0, 9.0, 12.0]]), np.array([[10.0, 10.0, -1.0]])).tolist()
+    [[2.0, 0.0, nan]]
+    """
+    d, p = _levels(demand), _levels(np.asarray(provided, np.float64).reshape(np.shape(demand)))
+    return np.maximum(d - p, 0.0)
+
+
+def undersampling_heatmap(under, *, scale: float) -> np.ndarray:
+    """uint8 H×W×3: white where 0 (demand met) → red at ``scale`` levels (saturating), grey where
+    NaN; the colours of ``colorbar(signed=False)``.
+
+    >>> undersampling_heatmap(np.array([[0.0, 4.0, np.nan]]), scale=4)[0].tolist()
+    [[255, 255, 255], [178, 24, 43], [128, 128, 128]]
+    """
+    return signed_error_heatmap(np.maximum(np.asarray(under, np.float64), 0.0), scale=scale)

@@ -17,7 +17,7 @@ test), and the pass reads the G-buffer's points so that the technique is evaluat
 truth is, also along a camera path (frame 0's points seen by frame t's camera).
 
 **vtsm** (§3): the virtual map cut into ``grid`` × ``grid`` equal tiles, every one rendered at
-``t_max`` × ``t_max`` (16 × 16 tiles of 4096² in 001; 8 × 1024² by default here, 67 M rays a frame).
+``t_max`` × ``t_max`` (16 × 16 tiles of 4096² in [Giegl 2007]; 8 × 1024² by default here, 67 M rays a frame).
 
 **fvsm** (§4): only the tiles the view needs, at the resolution it needs:
 
@@ -27,7 +27,7 @@ truth is, also along a camera path (frame 0's points seen by frame t's camera).
    smaller |Δz| in view depth (the other way round across a silhouette), along y likewise;
    projected into the map's NDC, its bounding box has half extents Δ_x, Δ_y, and a map of 1/Δ
    texels across [−1, 1] gives that pixel one texel. The demand level is
-   L = round(−log2 Δ + ½) (rounding half up: floor(−log2 Δ + 1), the byte 001 stores as L/256),
+   L = round(−log2 Δ + ½) (rounding half up: floor(−log2 Δ + 1), the byte [Giegl 2007] stores as L/256),
    so 2^L > 1/Δ. The SMTMM samples every ``smtmm_scale``-th pixel (the pixel at each block's
    centre): 256² for a 1024² frame at the default 4 (§5).
 2. *SMTG* (§4.4, the tile grid): ``grid`` × ``grid`` cells over the map; per cell and axis the
@@ -57,7 +57,7 @@ reused by later tiles as tiles are drawn one after another), 4 bytes a texel (on
 * ``pow2``: a sub-rectangle of the smallest texture of the series S_k = t_max/2^k + 2·overlap
   that holds the tile: Σ S_k² over the k used (≤ 4/3·t_max² without overlap);
 * ``exact``: a texture of exactly w × h per shape used: Σ w·h over the distinct shapes
-  (2·4/3·t_max² in 001's count, which assumes aspect ratios of at most 2).
+  (2·4/3·t_max² in [Giegl 2007, §4.10]'s count, which assumes aspect ratios of at most 2).
 
 Stats per light: ``tiles``, ``texels`` (rays cast), ``memory_bytes`` (the chosen mode) and
 ``memory_modes`` (all three), ``traversal_depth`` (the deepest pyramid level a tile sits on,
@@ -65,9 +65,9 @@ max(p_x, p_y)), ``demand`` (the root's demand levels [L_x, L_y]: the virtual map
 sub-pixel result needs), ``smtmm`` (its size), ``discarded_pixels`` and ``unshadowed_fraction``.
 AOVs: ``tile`` (the tile a pixel reads, −1 none), ``demand_x``, ``demand_y`` (L per pixel),
 ``provided_x``, ``provided_y`` (log2 of the virtual resolution its tile gives), ``cell`` (the
-SMTG cell, for the grid overlay). Every parameter steps the result (none is differentiable).
+SMTG cell, for the grid overlay); −1 where there is no surface or it lies outside the map. Every parameter steps the result (none is differentiable).
 
-Not done: LiSPSM focusing; semitransparent receivers (001 shadows them with one ordinary map):
+Not done: LiSPSM focusing; semitransparent receivers ([Giegl 2007, §4.11] shadows them with one ordinary map):
 no built-in scene has them.
 
 >>> demand_level(np.array([0.5, 0.25, 0.3, 1e-4])).tolist()
@@ -85,7 +85,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..render.lightview import FrustumSlice, SceneSphere, projection
-from ..render.tiles import Tiles, face_ndc, render_tiles
+from ..render.tiles import Tiles, assign_tiles, face_ndc, render_tiles, tile_groups
 from .base import LightResult, Param, Technique, param_table_markdown, register
 from .cascades import CSM_PARAMS, shadow_range
 from .shadow_map import (BIAS_PARAMS, Points, SubFrame, depth_test, map_settings, opaque_bias, receiver,
@@ -115,7 +115,7 @@ def _focus_params(default: str) -> tuple:
 def _tile_params(grid_default: int, grid_doc: str) -> tuple:
     return (
         Param("t_max", 1024, "int", 1, T_MAX_LIMIT, "texels", False, source="[Giegl 2007, §3]",
-              doc="largest tile texture side, a power of two ≤ 16384 (4096 in 001; 1024 is under a second of rays "
+              doc="largest tile texture side, a power of two ≤ 16384 (4096 in [Giegl 2007]; 1024 is under a second of rays "
                   "on 2 CPU cores)"),
         Param("grid", grid_default, "choice", units="tiles per axis", choices=GRIDS, source="[Giegl 2007, §3, §4.4]",
               doc=grid_doc),
@@ -125,13 +125,13 @@ def _tile_params(grid_default: int, grid_doc: str) -> tuple:
 #: the bias parameters of ``hard``; a tile's size comes from the tiling, not ``resolution``
 TILE_BIAS_PARAMS = tuple(p for p in BIAS_PARAMS if p.name != "resolution")
 
-VTSM_PARAMS = _tile_params(8, "n: the virtual map is n × n tiles of t_max² each (16 in 001)") + _focus_params("sphere")
+VTSM_PARAMS = _tile_params(8, "n: the virtual map is n × n tiles of t_max² each (16 in [Giegl 2007])") + _focus_params("sphere")
 
-FVSM_PARAMS = _tile_params(16, "n: the SMTG has n × n cells, the finest tiles (16 or 32 in 001)") + (
+FVSM_PARAMS = _tile_params(16, "n: the SMTG has n × n cells, the finest tiles (16 or 32 in [Giegl 2007])") + (
     Param("xi", 0, "int", 0, 16, "log2 levels", False, source="[Giegl 2007, §4.9]",
-          doc="ξ: subtracted from the log2 demand when deciding to refine (0 … 5 in 001; large = one ordinary map)"),
+          doc="ξ: subtracted from the log2 demand when deciding to refine (0 … 5 in [Giegl 2007]; large = one ordinary map)"),
     Param("smtmm_scale", 4, "int", 1, 16, "pixels", False, source="[Giegl 2007, §4.3, §5]",
-          doc="frame pixels per SMTMM pixel along each axis (4: a 256² SMTMM for a 1024² frame, as in 001)"),
+          doc="frame pixels per SMTMM pixel along each axis (4: a 256² SMTMM for a 1024² frame, as in [Giegl 2007])"),
     Param("eta0", 17, "int", 0, LEVEL_MAX, "log2 texels", False, source="[Giegl 2007, §4.4, §5]",
           doc="η0: demand levels below it share the histogram's lowest bucket"),
     Param("eta1", 22, "int", 0, LEVEL_MAX, "log2 texels", False, source="[Giegl 2007, §4.4, §5]",
@@ -485,33 +485,41 @@ class VirtualMap(Technique):
         base = self.base(frame, light, values)
         tiles, cells, stats, aovs = self.plan(frame, light, values, base)
         _, bits = map_settings(frame, light.name, values)
-        tv = render_tiles(frame.scene, light, base, tiles, bits, bool(values["backface"]))
-        gb = frame.gbuffer
-        scr = frame.screen
-        tv = tv.assign(gb.p, mi.Float(scr.x) + 0.5, mi.Float(scr.y) + 0.5, cells, int(values["grid"]))
+        gb, scr = frame.gbuffer, frame.screen
         npts = dr.width(gb.valid)
+        tile = assign_tiles(base.faces[0], tiles, gb.p, mi.Float(scr.x) + 0.5, mi.Float(scr.y) + 0.5, cells,
+                            int(values["grid"]))
+        pts = SubFrame(frame.scene, Points(gb.p, gb.ng, gb.valid))
+        v, active, texel = dr.full(mi.Float, 1.0, npts), dr.full(mi.Bool, False, npts), dr.zeros(mi.Float, npts)
+        hits = 0
+        # tiles are applied one after another: a wavefront of tiles at a time, then its texels are freed
+        for lo, hi in tile_groups(tiles):
+            tv = render_tiles(frame.scene, light, base, tiles.subset(lo, hi), bits, bool(values["backface"]))
+            tv = tv.bind(dr.select((tile >= lo) & (tile < hi), tile - lo, -1))
+            rec = receiver(pts, tv, ctx.bias)
+            test = depth_test(tv, rec, texel_index(rec["u"]), texel_index(rec["v"]), ctx.bias)
+            v = dr.select(rec["active"], test, v)
+            texel = dr.select(rec["active"], rec["texel"], texel)
+            active |= rec["active"]
+            dr.eval(v, texel, active)
+            hits += tv.hit_texels
+        v = dr.round(v * 255.0) * (1.0 / 255.0)                    # the one-byte shadow result texture
         t = tiles
         if len(t):
-            rec = receiver(SubFrame(frame.scene, Points(gb.p, gb.ng, gb.valid)), tv, ctx.bias)
-            active = rec["active"]
-            v = dr.select(active, depth_test(tv, rec, texel_index(rec["u"]), texel_index(rec["v"]), ctx.bias), 1.0)
             prov = lambda size, lo, hi: mi.Float(np.log2(size * 2.0 / (hi - lo)).astype(np.float32))  # noqa: E731
-            px, py = (dr.select(tv.point_has, dr.gather(mi.Float, prov(a, lo, hi), tv.point_tile), 0.0)
+            k = mi.UInt32(dr.maximum(tile, 0))
+            px, py = (dr.select(tile >= 0, dr.gather(mi.Float, prov(a, lo, hi), k), 0.0)
                       for a, lo, hi in ((t.nx, t.x0, t.x1), (t.ny, t.y0, t.y1)))
-            texel = dr.select(active, rec["texel"], 0.0)
-        else:   # nothing to shadow with: the cleared result texture
-            active = dr.full(mi.Bool, False, npts)
-            v = dr.full(mi.Float, 1.0, npts)
-            px = py = texel = dr.zeros(mi.Float, npts)
-        v = dr.round(v * 255.0) * (1.0 / 255.0)                    # the one-byte shadow result texture
-        aovs = {**aovs, "tile": dr.select(active, mi.Float(tv.point_tile), -1.0), "provided_x": px,
-                "provided_y": py, "texel": texel}
+        else:
+            px = py = dr.zeros(mi.Float, npts)
+        aovs = {**aovs, "tile": dr.select(active, mi.Float(tile), -1.0), "provided_x": px, "provided_y": py,
+                "texel": texel}
         f0 = base.faces[0]
-        entry = {"resolution": tv.res, "depth_bits": int(bits), "faces": 1, "tiles": len(t), "texels": t.texels,
-                 "near": float(f0.near), "far": float(f0.far), "projection": "orthographic",
-                 "virtual_extent": 2.0 * float(f0.scale)}
+        entry = {"resolution": int(max(t.nx.max(initial=0), t.ny.max(initial=0))), "depth_bits": int(bits), "faces": 1,
+                 "tiles": len(t), "texels": t.texels, "near": float(f0.near), "far": float(f0.far),
+                 "projection": "orthographic", "virtual_extent": 2.0 * float(f0.scale)}
         nvalid = max(int(dr.count(gb.valid)[0]), 1)
-        stats = {**stats, "tiles": len(t), "texels": t.texels, "hit_texels": tv.hit_texels,
+        stats = {**stats, "tiles": len(t), "texels": t.texels, "hit_texels": hits,
                  "unshadowed_fraction": int(dr.count(gb.valid & ~active)[0]) / nvalid}
         return LightResult(v, aovs, stats=stats, maps=[entry])
 
@@ -583,7 +591,9 @@ class FVSM(VirtualMap):
                  "discarded_pixels": int(d["dropped"].sum())}
         cx = mi.Int32(dr.clip(dr.floor((d["x"] + 1.0) * 0.5 * n), 0, n - 1))
         cy = mi.Int32(dr.clip(dr.floor((1.0 - d["y"]) * 0.5 * n), 0, n - 1))
-        aovs = {"demand_x": mi.Float(d["lx"]), "demand_y": mi.Float(d["ly"]), "cell": mi.Float(cy * n + cx)}
+        ok = frame.gbuffer.valid & (dr.abs(d["x"]) <= 1.0) & (dr.abs(d["y"]) <= 1.0)
+        aovs = {"demand_x": dr.select(ok, mi.Float(d["lx"]), -1.0), "demand_y": dr.select(ok, mi.Float(d["ly"]), -1.0),
+                "cell": dr.select(ok, mi.Float(cy * n + cx), -1.0)}
         return tiles, leaf_cells(lv, n), stats, aovs
 
 
