@@ -25,7 +25,7 @@ def frame(mitsuba_backend):
     return make_frame(build(parse(SCENE, "lightview.toml")), u_strata=1)
 
 
-def test_scene_sphere_is_the_old_map_bit_for_bit(frame):
+def test_scene_sphere_is_the_old_map(frame):
     """tests/data/lightview_baseline.npz was saved by the light_view before fits existed (res 24,
     every light kind, 32-bit and 16-bit with back faces)."""
     base = np.load(BASELINE)
@@ -36,8 +36,12 @@ def test_scene_sphere_is_the_old_map_bit_for_bit(frame):
             assert isinstance(v.fit, SceneSphere)
             key = f"{l.name}_{bits}_{int(back)}_"
             if not mi.variant().startswith("cuda"):
-                for k in ("depth", "z", "slope", "hit"):
-                    assert np.array_equal(getattr(v, k), base[key + k]), (l.name, bits, k)
+                # the baseline was cast on one CPU; Dr.Jit compiles its kernels for the host's vector
+                # instructions (AVX2, AVX-512), whose hit points differ in the last bits: on another
+                # CPU the same texels hit (bit for bit) and the values are within 8 ulp (measured ≤ 5)
+                assert np.array_equal(v.hit, base[key + "hit"]), (l.name, bits)
+                for k in ("depth", "z", "slope"):
+                    np.testing.assert_array_max_ulp(getattr(v, k), base[key + k], maxulp=8)
                 continue
             # the baseline was cast by the LLVM backend; OptiX's ray casts differ in the last bits
             both = v.hit & base[key + "hit"]

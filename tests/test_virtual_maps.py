@@ -324,6 +324,17 @@ def test_tiles_rendered_and_applied_a_wavefront_at_a_time_give_the_same_bits(out
     assert np.array_equal(whole.aovs["sun.tile"], parts.aovs["sun.tile"])
 
 
+def test_vtsm_is_one_focused_map_of_grid_times_t_max_texels_bit_for_bit(outdoor):
+    """n × n tiles of t² hold exactly the texels of one n·t map of the same light camera: VTSM
+    equals csm with one cascade (the same sphere fit, snapped) and a hard filter at n·t texels."""
+    v = base.get("vtsm").render(outdoor, {"grid": 4, "t_max": 64})
+    c = base.get("csm").render(outdoor, {"cascades": 1, "filter": "hard", "resolution": 256, "blend": 0.0})
+    assert np.array_equal(v.visibility["sun"].numpy(), c.visibility["sun"].numpy())
+    assert v.stats["lights"]["sun"]["tiles"] == 16 and v.stats["lights"]["sun"]["texels"] == 256 * 256
+    shadowed = v.visibility["sun"].numpy() < 0.5
+    assert 0.003 < shadowed.mean() < 0.5                    # shadows are there to compare
+
+
 def test_a_large_xi_is_one_ordinary_focused_map(outdoor):
     from shadowlab.render.lightview import FrustumSlice
     from shadowlab.techniques.cascades import shadow_range
@@ -413,3 +424,11 @@ def test_virtual_maps_refuse_lights_that_are_not_directional(mitsuba_backend):
     for name in ("fvsm", "vtsm"):
         why = base.get(name).unsupported(spec)
         assert "'lamp'" in why and "directional" in why
+
+
+def test_fitting_searches_the_biases_of_the_test_every_tile_applies():
+    from shadowlab.fit.run import default_loss, default_params
+    for name in ("fvsm", "vtsm"):
+        t = base.get(name)
+        assert default_params(t, t.resolve({})) == default_params(base.get("hard"))
+        assert default_loss(name) == default_loss("hard")

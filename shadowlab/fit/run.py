@@ -33,7 +33,7 @@ DEFAULT_PARAMS = {"hard": ("slope_scaled_depth_bias", "depth_bias"), "pcf": ("ke
 #: the loss a technique is fitted with when ``--loss`` is not given (else ``rmse_penumbra``):
 #: ``hard``'s biases trade acne in the lit area against Peter Panning at contacts, and the
 #: penumbra mask sees neither (fitted there, the slope bias runs negative for a 0.5 % gain)
-DEFAULT_LOSS = {"hard": "rmse"}
+DEFAULT_LOSS = {"hard": "rmse", "vtsm": "rmse", "fvsm": "rmse"}   # the virtual maps apply hard's test
 
 
 #: the ``compare`` metric that measures what each loss measures, over the same pixels (the shaded

@@ -244,11 +244,11 @@ def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backfa
     off = tiles.offsets
     off_dr = mi.UInt32(np.asarray(off, np.uint32))
     tab = lambda a: mi.Float(np.asarray(a, np.float32))  # noqa: E731
-    X0, Y1 = tab(tiles.x0), tab(tiles.y1)
-    DX, DY = tab((tiles.x1 - tiles.x0) / tiles.nx), tab((tiles.y1 - tiles.y0) / tiles.ny)
+    tab64 = lambda a: mi.Float64(np.asarray(a, np.float64))  # noqa: E731
+    X0, Y1 = tab64(tiles.x0), tab64(tiles.y1)
+    DX, DY = tab64((tiles.x1 - tiles.x0) / tiles.nx), tab64((tiles.y1 - tiles.y0) / tiles.ny)
     NX = mi.UInt32(np.asarray(tiles.nx, np.uint32))
     TX, TY = tab((tiles.x1 - tiles.x0) / tiles.nx * f0.scale), tab((tiles.y1 - tiles.y0) / tiles.ny * f0.scale)
-    o = mi.Vector3f(*f0.origin)
     R = [mi.Vector3f(*f0.R[r]) for r in range(3)]
     own = scene.light_shapes.get(light.name)
     shapes = scene.mi_scene.shapes_dr()
@@ -262,19 +262,28 @@ def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backfa
         j = k - dr.gather(mi.UInt32, off_dr, t)
         nx = dr.maximum(dr.gather(mi.UInt32, NX, t), 1)   # the LLVM packet's unused lanes gather 0: no x/0 there
         col, row = j % nx, j // nx
-        xb = dr.gather(mi.Float, X0, t) + (mi.Float(col) + 0.5) * dr.gather(mi.Float, DX, t) + f0.shift[0]
-        yb = dr.gather(mi.Float, Y1, t) - (mi.Float(row) + 0.5) * dr.gather(mi.Float, DY, t) + f0.shift[1]
+        # texel centres and ray origins in double precision, rounded once: the same world texel gets the
+        # same float32 ray wherever the (snapped) light camera sits, so a still texel grid casts the same rays
+        F = mi.Float64
+        xb = dr.gather(F, X0, t) + (F(col) + 0.5) * dr.gather(F, DX, t) + f0.shift[0]
+        yb = dr.gather(F, Y1, t) - (F(row) + 0.5) * dr.gather(F, DY, t) + f0.shift[1]
+        xs, ys = xb * f0.scale, yb * f0.scale
+        Rr = f0.R
         if f0.ortho:
             d = R[2]
-            org = o + R[0] * (xb * f0.scale) + R[1] * (yb * f0.scale) + R[2] * min(0.0, n_)
+            st = min(0.0, n_)
+            org = mi.Point3f(*[mi.Float(f0.origin[c] + Rr[0][c] * xs + Rr[1][c] * ys + Rr[2][c] * st) for c in range(3)])
         else:
-            d = dr.normalize(R[0] * (xb * f0.scale) + R[1] * (yb * f0.scale) + R[2])
-            org = o + d * (1e-5 * scene.radius)
+            dd = [Rr[0][c] * xs + Rr[1][c] * ys + Rr[2][c] for c in range(3)]
+            inv = dr.rsqrt(dd[0] * dd[0] + dd[1] * dd[1] + dd[2] * dd[2])
+            d = mi.Vector3f(*[mi.Float(a * inv) for a in dd])
+            st = 1e-5 * scene.radius
+            org = mi.Point3f(*[mi.Float(f0.origin[c] + dd[c] * inv * st) for c in range(3)])
         ray = mi.Ray3f(mi.Point3f(org), mi.Vector3f(d))
         si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha)
         hit = si.is_valid()
-        rel = si.p - mi.Point3f(o)
-        q = [dr.dot(rel, R[r]) for r in range(3)]
+        rel = [mi.Float64(si.p[c]) - f0.origin[c] for c in range(3)]          # light space in double, as light_view
+        q = [mi.Float(rel[0] * Rr[r][0] + rel[1] * Rr[r][1] + rel[2] * Rr[r][2]) for r in range(3)]
         nl = [dr.dot(mi.Vector3f(si.n), R[r]) for r in range(3)]
         tx, ty = dr.gather(mi.Float, TX, t), dr.gather(mi.Float, TY, t)
         m = dr.maximum(dr.abs(nl[0]) * tx, dr.abs(nl[1]) * ty)

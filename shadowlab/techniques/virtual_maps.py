@@ -86,7 +86,7 @@ import numpy as np
 from ..errors import InputError
 from ..render.lightview import FrustumSlice, SceneSphere, projection
 from ..render.tiles import Tiles, assign_tiles, face_ndc, render_tiles, tile_groups
-from .base import LightResult, Param, Technique, param_table_markdown, register
+from .base import _REGISTRY, LightResult, Param, Technique, param_table_markdown, register
 from .cascades import CSM_PARAMS, shadow_range
 from .shadow_map import (BIAS_PARAMS, Points, SubFrame, depth_test, map_settings, opaque_bias, receiver,
                          texel_index)
@@ -466,6 +466,11 @@ class VirtualMap(Technique):
 
     def prepare(self, frame, values, ctx):
         ctx.bias = opaque_bias({**values, "resolution": 0})
+
+    def fit_params(self, values: dict, family_defaults) -> tuple:
+        """``shadowlab fit``'s default parameters: ``hard``'s (the biases of the test every tile
+        applies), searched without gradients."""
+        return tuple(family_defaults(_REGISTRY["hard"]))
 
     def base(self, frame, light, values):
         """The virtual map's light camera (one orthographic face)."""
