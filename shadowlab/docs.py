@@ -40,10 +40,11 @@ def bench_section() -> str | None:
     if not p.exists():
         return None
     text = p.read_text().strip()
-    for part in ("sdf.md", "cascades.md", "cascades-cuda.md"):
+    for part in ("sdf.md", "cascades.md", "cascades-cuda.md", "virtual.md"):
         f = p.with_name(part)
         if f.exists():
-            text += "\n\n" + f.read_text().strip()
+            # plots stay beside the part in reports/ (not in the repository): the README keeps the tables
+            text += "\n\n" + re.sub(r"^!\[[^\]]*\]\([^)]*\)\n?", "", f.read_text().strip(), flags=re.M)
     # the README's section is "## Benchmarks": its title one level below, its tables two
     return re.sub(r"^(#+) ", lambda m: "#" * (len(m.group(1)) + 2) + " ", text, flags=re.M)
 

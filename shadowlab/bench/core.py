@@ -15,7 +15,8 @@ Measured (never asserted in tests):
 * a 50-value sweep of one continuous parameter per technique: kernels compiled after the first
   value (0 when parameters are opaque) and kernel-cache hits;
 * parameter fitting (``shadowlab.bench.fit``): pcss.light_scale by Adam vs the grid-search optimum
-  and the grid of equal final loss.
+  and the grid of equal final loss;
+* virtual shadow maps (``shadowlab.bench.virtual``, [Giegl 2007]): ``virtual.json`` / ``virtual.md``.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from .fit import markdown as fit_markdown
 from .fit import measure as bench_fit
 from .sdf import run as sdf_bench
 from .timing import timed
+from .virtual import run as virtual_bench
 
 
 def _kernels():
@@ -261,24 +263,30 @@ def _markdown(res: dict) -> str:
     if res.get("cascades"):
         lines += ["", f"Cascaded shadow maps ([Buljan 2020, ch. 4]): see `{Path(res['cascades']).name}` "
                       "(`shadowlab bench --only cascades`)."]
+    if res.get("virtual"):
+        lines += ["", f"Virtual shadow maps ([Giegl 2007]): see `{Path(res['virtual']).name}` "
+                      "(`shadowlab bench --only virtual`)."]
     return "\n".join(lines) + "\n"
 
 
 #: the parts ``--only`` runs alone
-ONLY = ("sdf", "cascades")
+ONLY = ("sdf", "cascades", "virtual")
 
 
 def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
     """Run every benchmark; write ``out/bench.json`` and ``out/bench.md``; return the .md path.
     ``only="cascades"``: just :mod:`shadowlab.bench.cascades` (``out/cascades.json``, ``out/cascades.md``);
     ``only="sdf"``: just the SDF soft-shadow bench (:mod:`shadowlab.bench.sdf`: ``out/sdf.json``,
-    ``out/sdf.md``), which the full run also writes."""
+    ``out/sdf.md``); ``only="virtual"``: just :mod:`shadowlab.bench.virtual` (``out/virtual.json``,
+    ``out/virtual.md``, ``out/virtual.png``); the full run writes them all."""
     if only is not None and only not in ONLY:
         raise InputError(f"--only {only!r}: expected one of {', '.join(ONLY)} (or no --only for every benchmark)")
     if only == "sdf":
         return sdf_bench(Path(out), quick=quick)
     if only == "cascades":
         return cascades_bench(Path(out), quick=quick)
+    if only == "virtual":
+        return virtual_bench(Path(out), quick=quick)
     backend.init()
     res = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": backend.machine_info(),
            "quick": quick}
@@ -290,6 +298,7 @@ def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
     res["fit"] = bench_fit(quick)  # pcss.light_scale: Adam vs grid search (the fitting goals)
     res["sdf"] = str(sdf_bench(Path(out), quick=quick))  # [Bán 2019, ch. 6]: written to sdf.json / sdf.md
     res["cascades"] = str(cascades_bench(Path(out), quick=quick))  # [Buljan 2020, ch. 4]: cascades.json / .md
+    res["virtual"] = str(virtual_bench(Path(out), quick=quick))  # [Giegl 2007]: virtual.json / .md / .png
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "bench.json", res)

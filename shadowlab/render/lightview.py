@@ -119,8 +119,9 @@ class TileRect:
         if abs((self.x1 - self.x0) - (self.y1 - self.y0)) > 1e-9 * (self.x1 - self.x0):
             raise InputError(f"TileRect: a tile is square (its map has square texels); got "
                              f"{self.x1 - self.x0} × {self.y1 - self.y0}")
-        if not isinstance(self.base, (SceneSphere, FrustumSlice, TileRect)):
-            raise InputError(f"TileRect: base {self.base!r} is not a fit (SceneSphere, FrustumSlice, TileRect)")
+        if not isinstance(self.base, (SceneSphere, FrustumSlice, TileRect, LightSquare)):
+            raise InputError(f"TileRect: base {self.base!r} is not a fit (SceneSphere, FrustumSlice, TileRect, "
+                             "LightSquare)")
 
     @property
     def center(self) -> tuple:
@@ -131,7 +132,26 @@ class TileRect:
         return 0.5 * (self.x1 - self.x0)
 
 
-FITS = (SceneSphere, FrustumSlice, TileRect)
+@dataclass(frozen=True)
+class LightSquare:
+    """An orthographic map of a directional light over the square of half size ``half`` centred at
+    (``cx``, ``cy``) in the light's frame (x right, y up, about the world origin), its depth range
+    from the scene's nearest caster toward the light to light-space depth ``z1`` (what it must
+    shadow): a focus on the part of the scene the view sees [Giegl 2007, §4.8]."""
+
+    cx: float
+    cy: float
+    half: float
+    z1: float
+
+    def __post_init__(self):
+        for k in ("cx", "cy", "half", "z1"):
+            object.__setattr__(self, k, float(getattr(self, k)))
+        if not (all(math.isfinite(getattr(self, k)) for k in ("cx", "cy", "half", "z1")) and self.half > 0):
+            raise InputError(f"LightSquare: expected finite values and half > 0, got {self}")
+
+
+FITS = (SceneSphere, FrustumSlice, TileRect, LightSquare)
 
 
 @dataclass(frozen=True)
@@ -288,6 +308,8 @@ def projection(light, scene, res: int | None = None, fit=None) -> Projection:
         return _frustum_slice(light, scene, res, fit)
     if isinstance(fit, TileRect):
         return _tile(light, scene, res, fit)
+    if isinstance(fit, LightSquare):
+        return _light_square(light, scene, res, fit)
     raise InputError(f"light view fit {fit!r}: expected one of {', '.join(f.__name__ for f in FITS)}")
 
 
@@ -324,6 +346,25 @@ def _frustum_slice(light, scene, res: int, fit: FrustumSlice) -> Projection:
     near = min(float(zq.min()), float(zs.min())) - margin
     far = float(zq.max()) + margin
     return Projection((Face(tuple(o), tuple(map(tuple, Rm)), True, half, near, far),), res, False, fit)
+
+
+def light_frame(light) -> np.ndarray:
+    """Rows right, up, forward of a light's camera (forward = the direction it faces)."""
+    return _frame(np.array(lights_mod.forward(light)), light.up)
+
+
+def _light_square(light, scene, res: int, fit: LightSquare) -> Projection:
+    """Orthographic map of a light-space square (see :class:`LightSquare`)."""
+    if light.kind != "directional":
+        raise InputError(f"light {light.name!r} is a {light.kind} light: a LightSquare fit (an orthographic map "
+                         "of a light-space square) is for directional lights")
+    Rm = light_frame(light)
+    zs = _corners(scene) @ Rm[2]
+    margin = 1e-3 * scene.radius
+    cz = float(zs.min()) - margin                    # the light's plane: before every caster
+    o = Rm[0] * fit.cx + Rm[1] * fit.cy + Rm[2] * cz
+    far = max(fit.z1 - cz, 0.0) + margin
+    return Projection((Face(tuple(o), tuple(map(tuple, Rm)), True, fit.half, margin, far),), res, False, fit)
 
 
 def _tile(light, scene, res: int, fit: TileRect) -> Projection:

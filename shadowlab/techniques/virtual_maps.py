@@ -2,8 +2,9 @@
 shadow maps (``fvsm``) [Giegl 2007, §3–4].
 
 Both cover one *virtual* shadow map of a directional light, the light's orthographic map focused
-on the visible part of the view (``focus``: the bounding sphere or box of the camera frustum
-between the shadowed range's view depths, the fit of ``csm``'s cascades
+on the visible part of the view (``focus`` [Giegl 2007, §4.8]: ``visible``, the light-space square
+around the G-buffer's surface points, :func:`visible_square`; the bounding sphere or box of the
+camera frustum between the shadowed range's view depths, the fits of ``csm``'s cascades
 [Buljan 2020, §4.2]; or the whole scene), with tiles: rectangles of its NDC square, each
 rendered as a texture of its own (:mod:`shadowlab.render.tiles`, one ray per texel) and applied by
 deferred shadowing into a one-byte *shadow result texture* (§3.2): a tile writes the hard,
@@ -84,7 +85,8 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import InputError
-from ..render.lightview import FrustumSlice, SceneSphere, projection
+from ..render.gbuffer import vec_numpy
+from ..render.lightview import FrustumSlice, LightSquare, SceneSphere, light_frame, projection
 from ..render.tiles import Tiles, assign_tiles, face_ndc, render_tiles, tile_groups
 from .base import _REGISTRY, LightResult, Param, Technique, param_table_markdown, register
 from .cascades import CSM_PARAMS, shadow_range
@@ -96,16 +98,19 @@ GRIDS = (1, 2, 4, 8, 16, 32)
 T_MAX_LIMIT = 16384
 LEVEL_MAX = 255
 TILE_MODES = ("subrect", "pow2", "exact")
+FOCI = ("visible", "sphere", "box", "scene")
 _CSM = {p.name: p for p in CSM_PARAMS}
 
 
 def _focus_params(default: str) -> tuple:
     return (
-        Param("focus", default, "choice", choices=("sphere", "box", "scene"), source="[Giegl 2007, §4.8]",
-              doc="the virtual map's light camera: focused on the view frustum between the shadowed range's depths "
-                  "(its bounding sphere, or its light-space bounding box), or the whole scene"),
+        Param("focus", default, "choice", choices=FOCI, source="[Giegl 2007, §4.8]",
+              doc="the virtual map's light camera: the light-space square around the points the view sees (visible), "
+                  "the view frustum between the shadowed range's depths (its bounding sphere or light-space box, "
+                  "csm's fits), or the whole scene"),
         replace(_CSM["snap"], doc="move the focused light across its direction by whole texels of the finest "
-                                  "possible virtual map (grid × t_max), so its texel grid holds still under small camera moves"),
+                                  "possible virtual map (grid × t_max), so its texel grid holds still under small camera "
+                                  "moves; with focus = visible the square's side also steps by powers of two"),
         replace(_CSM["pull"], doc="pull-back of the focused light from the frustum's centre, in radii of its bounding sphere"),
         replace(_CSM["shadow_near"], doc="near end of the focused range (view depth); 0 = the camera's near clip within the scene"),
         replace(_CSM["shadow_far"], doc="far end of the focused range (view depth); 0 = the camera's far clip within the scene"),
@@ -125,7 +130,7 @@ def _tile_params(grid_default: int, grid_doc: str) -> tuple:
 #: the bias parameters of ``hard``; a tile's size comes from the tiling, not ``resolution``
 TILE_BIAS_PARAMS = tuple(p for p in BIAS_PARAMS if p.name != "resolution")
 
-VTSM_PARAMS = _tile_params(8, "n: the virtual map is n × n tiles of t_max² each (16 in [Giegl 2007])") + _focus_params("sphere")
+VTSM_PARAMS = _tile_params(8, "n: the virtual map is n × n tiles of t_max² each (16 in [Giegl 2007])") + _focus_params("visible")
 
 FVSM_PARAMS = _tile_params(16, "n: the SMTG has n × n cells, the finest tiles (16 or 32 in [Giegl 2007])") + (
     Param("xi", 0, "int", 0, 16, "log2 levels", False, source="[Giegl 2007, §4.9]",
@@ -145,7 +150,7 @@ FVSM_PARAMS = _tile_params(16, "n: the SMTG has n × n cells, the finest tiles (
           doc="texels each tile extends beyond its rectangle on every side (tiles overlap slightly)"),
     Param("apply", "rect", "choice", choices=("rect", "full"), source="[Giegl 2007, §4.5, §5]",
           doc="a tile shadows the screen rectangle of its pixels (rect) or the whole screen (full)"),
-) + _focus_params("sphere")
+) + _focus_params("visible")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -434,6 +439,31 @@ def memory_texels(w, h, t_max: int, overlap: int = 0) -> dict:
 
 
 # ----------------------------------------------------------------------------------------------
+# focusing (§4.8)
+
+def visible_square(frame, light, res: int, snap: bool) -> LightSquare:
+    """The light-space square around the G-buffer's surface points (the part of the scene the view
+    sees), to the deepest of them; ``snap``: its half size rounded up to a power of two (metres)
+    and its centre to whole texels of a ``res``-texel map, so small camera moves leave the texel
+    grid where it was."""
+    valid = np.asarray(frame.gbuffer.valid.numpy(), bool).reshape(-1)
+    R = light_frame(light)
+    P = vec_numpy(frame.gbuffer.p)[valid]
+    if not len(P):
+        c = np.asarray(frame.scene.center, np.float64)
+        P = np.stack([c - frame.scene.radius, c + frame.scene.radius])
+    q = P @ R.T
+    lo, hi = q.min(axis=0), q.max(axis=0)
+    cx, cy = 0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])
+    half = 0.5 * float(max(hi[0] - lo[0], hi[1] - lo[1])) * 1.001 + 1e-6 * frame.scene.radius
+    if snap:   # one texel wider, as FrustumSlice's snap: the rounded centre moves by up to half a texel
+        half = 2.0 ** math.ceil(math.log2(half)) * max(res, 2) / (max(res, 2) - 1.0)
+        t = 2.0 * half / res
+        cx, cy = round(cx / t) * t, round(cy / t) * t
+    return LightSquare(cx, cy, half, float(hi[2]) + 1e-3 * frame.scene.radius)
+
+
+# ----------------------------------------------------------------------------------------------
 # the techniques
 
 def _check_tiling(values: dict, name: str) -> None:
@@ -474,13 +504,16 @@ class VirtualMap(Technique):
 
     def base(self, frame, light, values):
         """The virtual map's light camera (one orthographic face)."""
+        res = int(values["grid"]) * int(values["t_max"])
         if values["focus"] == "scene":
             fit = SceneSphere()
+        elif values["focus"] == "visible":
+            fit = visible_square(frame, light, res, bool(values["snap"]))
         else:
             n, f = shadow_range(frame.camera, frame.scene, values)
             fit = FrustumSlice(n, f, float(values["pull"]), bool(values["snap"]), values["focus"])
         # snapping steps by a texel of the finest virtual map the tiles can make
-        return projection(light, frame.scene, int(values["grid"]) * int(values["t_max"]), fit)
+        return projection(light, frame.scene, res, fit)
 
     def plan(self, frame, light, values, base) -> tuple:  # pragma: no cover - interface
         """(Tiles, cells table or None, stats, per-point AOVs): the tiles to render."""
