@@ -317,7 +317,7 @@ def test_tiles_rendered_and_applied_a_wavefront_at_a_time_give_the_same_bits(out
     assert T.tile_groups(t, 64) == [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5)]
     assert T.tile_groups(t, 84) == [(0, 3), (3, 5)] and T.tile_groups(t, 10 ** 6) == [(0, 5)]
     whole = base.get("fvsm").render(outdoor, SMALL)
-    monkeypatch.setattr(T, "CHUNK", 70_000)
+    monkeypatch.setattr(T, "chunk_texels", lambda: 70_000)
     parts = base.get("fvsm").render(outdoor, SMALL)
     assert whole.stats["lights"]["sun"]["tiles"] > 3
     assert np.array_equal(whole.visibility["sun"].numpy(), parts.visibility["sun"].numpy())

@@ -10,7 +10,7 @@ Texel (i, j) of a tile has its centre at x = x0 + (i + ½)(x1 − x0)/nx, y = y1
 texel grid of a base map of nx·2/(x1 − x0) texels holds that map's depths there.
 
 Every tile's texels are cast in one Dr.Jit wavefront (a texel finds its tile by binary search
-over the tiles' texel offsets; chunks of :data:`CHUNK` texels bound the memory), with the
+over the tiles' texel offsets; chunks of :func:`chunk_texels` texels bound the memory), with the
 conventions of :func:`~shadowlab.render.lightview.light_view`: ``depth`` is the NDC depth,
 quantised to 16/24-bit UNORM or kept as fp32, 1 where nothing was hit; ``slope`` the caster's
 max NDC depth slope per texel, max(|∂d/∂x|·t_x, |∂d/∂y|·t_y) with the tile's own texel widths.
@@ -33,8 +33,16 @@ import numpy as np
 from ..errors import InputError
 from .lightview import Projection, cast_first_hit
 
-#: texels per wavefront of :func:`render_tiles` (Mitsuba's intersection record is ~100 B a ray)
+#: texels per wavefront of :func:`render_tiles` on the CPU (Mitsuba's intersection record is ~100 B a
+#: ray) and on a GPU (:func:`chunk_texels`)
 CHUNK = 1 << 22
+CHUNK_GPU = 1 << 26
+
+
+def chunk_texels() -> int:
+    """Texels per wavefront for the active variant: larger wavefronts on a GPU, where kernel
+    launches, not memory, bound a frame of many small ones."""
+    return CHUNK_GPU if mi.variant().startswith("cuda") else CHUNK
 
 
 @dataclass(frozen=True)
@@ -221,7 +229,7 @@ def assign_tiles(face, tiles: Tiles, p, px=None, py=None, cells=None, n: int = 1
 def tile_groups(tiles: Tiles, chunk: int | None = None) -> list:
     """Consecutive tile ranges [lo, hi) of at most ``chunk`` texels each (a larger tile alone):
     the wavefronts a frame's tiles are rendered and applied in."""
-    chunk = CHUNK if chunk is None else int(chunk)
+    chunk = chunk_texels() if chunk is None else int(chunk)
     off = tiles.offsets
     out, lo = [], 0
     while lo < len(tiles):
@@ -233,7 +241,7 @@ def tile_groups(tiles: Tiles, chunk: int | None = None) -> list:
 
 
 def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backface: bool = False) -> TiledView:
-    """Cast one ray per texel of every tile (one wavefront per :data:`CHUNK` texels)."""
+    """Cast one ray per texel of every tile (one wavefront per :func:`chunk_texels` texels)."""
     if len(base.faces) != 1:
         raise InputError(f"light {light.name!r}: a virtual tiled map needs a one-face light camera "
                          f"(directional or spot), not a {len(base.faces)}-face map")
@@ -256,8 +264,9 @@ def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backfa
     alpha = bool(getattr(scene, "has_alpha", False))
     n_, f_ = f0.near, f0.far
     depth, slope, hits = [], [], 0
-    for k0 in range(0, total, CHUNK):
-        k = dr.arange(mi.UInt32, k0, min(total, k0 + CHUNK))
+    step = chunk_texels()
+    for k0 in range(0, total, step):
+        k = dr.arange(mi.UInt32, k0, min(total, k0 + step))
         t = dr.binary_search(0, T - 1, lambda i: dr.gather(mi.UInt32, off_dr, i + 1) <= k)
         j = k - dr.gather(mi.UInt32, off_dr, t)
         nx = dr.maximum(dr.gather(mi.UInt32, NX, t), 1)   # the LLVM packet's unused lanes gather 0: no x/0 there
