@@ -140,4 +140,17 @@ def machine_info() -> dict:
             info[pkg] = md.version(pkg)
         except md.PackageNotFoundError:
             info[pkg] = None
+    if str(_state["variant"] or "").startswith("cuda"):
+        info["gpu"] = _gpu_name()
     return info
+
+
+def _gpu_name() -> str | None:
+    """The first GPU's name from ``nvidia-smi`` (None where it cannot tell)."""
+    try:
+        out = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                             text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    names = [l.strip() for l in out.stdout.splitlines() if l.strip()]
+    return names[0] if out.returncode == 0 and names else None

@@ -2,7 +2,10 @@
 
 ``python -m shadowlab.docs`` rewrites the marked sections of README.md in place
 (``<!-- NAME:begin -->`` … ``<!-- NAME:end -->``); ``--check`` exits 1 if they are stale.
-The bench section is copied from reports/bench/bench.md (and sdf.md, cascades.md and cascades-cuda.md, a GPU run of the cascades part, after it) when that file exists.
+The bench section is copied from reports/bench/bench.md (and sdf.md, cascades.md and cascades-cuda.md, a GPU run of the cascades part, after it) when that file exists;
+the virtual shadow maps' section (``bench-virtual``) from reports/bench/virtual.md and virtual-cuda.md
+(``shadowlab bench --only virtual`` on the CPU and on a GPU) when either exists, so that part can be
+measured and regenerated alone. A part's plot stays beside it in reports/: the README keeps its tables.
 """
 
 from __future__ import annotations
@@ -40,12 +43,26 @@ def bench_section() -> str | None:
     if not p.exists():
         return None
     text = p.read_text().strip()
-    for part in ("sdf.md", "cascades.md", "cascades-cuda.md", "virtual.md"):
+    for part in ("sdf.md", "cascades.md", "cascades-cuda.md"):
         f = p.with_name(part)
         if f.exists():
-            # plots stay beside the part in reports/ (not in the repository): the README keeps the tables
-            text += "\n\n" + re.sub(r"^!\[[^\]]*\]\([^)]*\)\n?", "", f.read_text().strip(), flags=re.M)
-    # the README's section is "## Benchmarks": its title one level below, its tables two
+            text += "\n\n" + _part(f)
+    return _demote(text)
+
+
+def bench_virtual_section() -> str | None:
+    parts = [ROOT / "reports" / "bench" / n for n in ("virtual.md", "virtual-cuda.md")]
+    parts = [_part(f) for f in parts if f.exists()]
+    return _demote("\n\n".join(parts)) if parts else None
+
+
+def _part(f: Path) -> str:
+    """A bench part's Markdown without its plots (they stay beside it in reports/, not in the repository)."""
+    return re.sub(r"^!\[[^\]]*\]\([^)]*\)\n?", "", f.read_text().strip(), flags=re.M).strip()
+
+
+def _demote(text: str) -> str:
+    """The README's section is "## Benchmarks": a part's title one level below, its tables two."""
     return re.sub(r"^(#+) ", lambda m: "#" * (len(m.group(1)) + 2) + " ", text, flags=re.M)
 
 
@@ -68,6 +85,7 @@ def main(argv=None) -> int:
     if "--check" in argv:
         return 0 if render(old, sections) == old else 1
     sections["bench"] = bench_section()
+    sections["bench-virtual"] = bench_virtual_section()
     new = render(old, sections)
     if new != old:
         path.write_text(new)

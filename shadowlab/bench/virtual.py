@@ -95,7 +95,7 @@ CONFIGS = {
     "quick": Config((128, 72), (128, 72), 4, 256, 4, 2, 2, True),
     # the paper's sizes ([Giegl 2007, §3, §5]: 4096² tiles, 16 per axis, a 1024-pixel-wide frame),
     # which a full run takes on a GPU (cuda variants): 16² VTSM tiles of 4096² are 4.3 G rays
-    "paper": Config((1024, 576), (512, 288), 16, 4096, 16, 5, 3, False),
+    "paper": Config((1024, 576), (256, 144), 8, 4096, 16, 3, 2, False),
 }
 
 
@@ -292,7 +292,8 @@ def _mib(b) -> str:
 
 
 def _ran(m: dict, scene: str, res, extra: str) -> str:
-    return (f"Ran: `{scene}`, {res[0]}×{res[1]}, {extra}; {m['cpu']}, {m['cores']} cores, variant {m['variant']}.")
+    gpu = f", {m['gpu']}" if m.get("gpu") else ""
+    return (f"Ran: `{scene}`, {res[0]}×{res[1]}, {extra}; {m['cpu']}, {m['cores']} cores{gpu}, variant {m['variant']}.")
 
 
 def _cost_md(c: dict, m: dict) -> list:
@@ -382,7 +383,8 @@ def _equal_md(e: dict, m: dict, plot: str) -> list:
 def markdown(res: dict) -> str:
     m = res["machine"]
     lines = [f"# Virtual shadow maps ({res['date']})", "",
-             f"Machine: {m['cpu']}, {m['cores']} cores, mitsuba {m['mitsuba']}, drjit {m['drjit']}, variant "
+             f"Machine: {m['cpu']}, {m['cores']} cores{', ' + m['gpu'] if m.get('gpu') else ''}, mitsuba {m['mitsuba']}, "
+             f"drjit {m['drjit']}, variant "
              f"{m['variant']}. All figures from one run ({res['wall_s']:.0f} s)"
              f"{' (--quick: small sizes, not for figures)' if res['quick'] else ''}.", ""]
     lines += _cost_md(res["cost"], m) + _versus_md(res["cost"], m) + _xi_md(res["xi"], m)
