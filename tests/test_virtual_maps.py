@@ -19,19 +19,9 @@ from shadowlab.techniques import base
 from shadowlab.techniques.virtual_maps import (GRIDS, SMTMM, bucket, cell_demand, demand_level, leaf_cells,
                                                memory_texels, pyramid, tile_grid, traverse)
 
-SHAPES = [
-    {"name": "floor", "type": "rectangle", "rotate": [1, 0, 0, -90], "scale": 50.0},
-    {"name": "box1", "type": "cube", "translate": [-1.5, 0.5, -4.0], "scale": 0.5},
-    {"name": "box2", "type": "cube", "translate": [2.0, 1.0, -15.0], "scale": 1.0},
-    {"name": "box3", "type": "cube", "translate": [-4.0, 2.0, -40.0], "scale": 2.0},
-    {"name": "pole1", "type": "cylinder", "p0": [1.0, 0.0, -8.0], "p1": [1.0, 3.0, -8.0], "radius": 0.1},
-    {"name": "pole2", "type": "cylinder", "p0": [-2.0, 0.0, -25.0], "p1": [-2.0, 5.0, -25.0], "radius": 0.2},
-]
-SUN = {"name": "sun", "kind": "directional", "direction": [0.4, -1.0, -0.3], "irradiance": 3.0,
-       "angular_diameter": 0.53, "shadow_map": 256}
-OUTDOOR = {"name": "outdoor", "lights": [SUN], "shapes": SHAPES,
-           "camera": {"position": [0.0, 1.7, 2.0], "target": [0.0, 1.0, -20.0], "fov": 60, "resolution": [128, 72],
-                      "near": 0.1, "far": 150.0}}
+from outdoor_scene import CAMERA, OUTDOOR as _OUTDOOR, SHAPES, SUN  # noqa: E402
+
+OUTDOOR = {**_OUTDOOR, "camera": {**CAMERA, "resolution": [128, 72]}}
 SMALL = {"t_max": 256, "grid": 8}
 
 
@@ -481,3 +471,28 @@ def test_visible_focus_holds_every_visible_point_and_its_texel_grid_holds_still(
     # without snapping the square follows the points
     free = t.resolve({**SMALL, "snap": False})
     assert t.base(moved, moved.lights[0], free).fit != t.base(outdoor, outdoor.lights[0], free).fit
+
+
+def test_a_frame_seen_by_another_camera_takes_its_demand_and_focus_from_that_view(outdoor):
+    """The shimmer evaluates frame 0's points with frame t's camera: a virtual map's tiles are frame
+    t's, so its demand and focus come from what frame t's camera sees, not from frame 0's points."""
+    import dataclasses
+    from shadowlab.render.frame import FrameContext
+    from shadowlab.render.gbuffer import gbuffer, vec_numpy
+    from shadowlab.scene import build
+    assert outdoor.own_gbuffer is outdoor.gbuffer and outdoor.own_screen is outdoor.screen
+    spec = outdoor.scene.spec
+    step = (0.0, 0.0, -5.0)
+    cam = dataclasses.replace(spec.camera, position=tuple(np.add(spec.camera.position, step)),
+                              target=tuple(np.add(spec.camera.target, step)))
+    sc = build(dataclasses.replace(spec, camera=cam))
+    moved = FrameContext(scene=sc, gbuffer=outdoor.gbuffer, unshadowed=outdoor.unshadowed, sdf=outdoor.sdf)
+    own = moved.own_gbuffer
+    assert own is not outdoor.gbuffer and own is moved.own_gbuffer
+    assert np.array_equal(vec_numpy(own.p), vec_numpy(gbuffer(sc).p))
+    t = base.get("fvsm")
+    values = t.resolve(SMALL)
+    assert t.base(moved, moved.lights[0], values).fit != t.base(outdoor, outdoor.lights[0], values).fit
+    r = t.render(moved, SMALL)
+    assert r.visibility["sun"].numpy().shape == outdoor.gbuffer.valid.numpy().shape
+    assert r.stats["lights"]["sun"]["tiles"] >= 1

@@ -428,7 +428,8 @@ def plot(res: dict) -> bytes:
     ax[0, 1].set_title(f"equal memory: {_mib(e['budget_bytes'])} MiB", fontsize=9)
     a = ax[1, 1]
     labels = list(e["rows"])
-    a.bar(range(len(labels)), [e["shimmer"]["techniques"][k]["pooled"]["mean"] for k in labels], color="tab:purple")
+    a.bar(range(len(labels)), [e["shimmer"]["techniques"][k]["pooled"]["mean"] for k in labels],
+          color=[f"C{i}" for i in range(len(labels))])       # the colours of the error lines above
     a.set_xticks(range(len(labels)), [k.split(" (")[0].split(",")[0] for k in labels], fontsize=7, rotation=15)
     a.set_ylabel("shimmer (mean |ΔV|)")
     a.grid(alpha=0.3, axis="y")

@@ -59,6 +59,29 @@ class FrameContext:
             self._cache["screen"] = Screen.from_frame(self)
         return self._cache["screen"]
 
+    @property
+    def own_gbuffer(self) -> GBuffer:
+        """The G-buffer of the frame's own camera: ``gbuffer``, or, where that came from another
+        camera (the shimmer's frame-0 points seen with frame t's camera and light views), one cast
+        from this frame's camera for what depends on the view itself (a virtual map's demand and
+        focus), made once."""
+        gb = self.gbuffer
+        if gb.view is None or gb.view == self.scene.spec.camera:
+            return gb
+        if "own_gbuffer" not in self._cache:
+            self._cache["own_gbuffer"] = gbuffer(self.scene, ss=gb.ss)
+        return self._cache["own_gbuffer"]
+
+    @property
+    def own_screen(self) -> Screen:
+        """:attr:`screen` of :attr:`own_gbuffer` (the same object where the G-buffer is the frame's own)."""
+        gb = self.own_gbuffer
+        if gb is self.gbuffer:
+            return self.screen
+        if "own_screen" not in self._cache:
+            self._cache["own_screen"] = Screen(self.camera, gb.ss, gb.p, gb.n, gb.valid)
+        return self._cache["own_screen"]
+
     def light_view(self, light_name: str, res: int | None = None, bits: int | None = None,
                    backface: bool = False, fit=None) -> LightView:
         """The light's depth map, cast once per (light, resolution, depth bits, back faces, fit);

@@ -41,6 +41,7 @@ class GBuffer:
     albedo: np.ndarray      # (H, W, ss², 3)
     mask: np.ndarray        # (H, W, ss²) bool
     shape_id: np.ndarray    # (H, W, ss²) int32, -1 = miss
+    view: object = None     # the scene's camera (spec) the rays came from
 
     @property
     def size(self) -> int:
@@ -107,7 +108,7 @@ def gbuffer(scene, ss: int = 1) -> GBuffer:
     albedo = vec_numpy(alb).reshape(*shp, 3).astype(np.float32) * mask[..., None]
     return GBuffer(width=W, height=H, ss=ss, si=si, rays=ray, p=si.p, n=n, ng=ng, valid=valid,
                    view_depth=vd, z_depth=zz, albedo=albedo, mask=mask,
-                   shape_id=sid.numpy().reshape(shp).astype(np.int32))
+                   shape_id=sid.numpy().reshape(shp).astype(np.int32), view=scene.spec.camera)
 
 
 MAX_ALPHA_LAYERS = 64  # transparent texels a camera ray may pass before it stops (then: a miss)

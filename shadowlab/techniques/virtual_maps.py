@@ -446,9 +446,10 @@ def visible_square(frame, light, res: int, snap: bool) -> LightSquare:
     sees), to the deepest of them; ``snap``: its half size rounded up to a power of two (metres)
     and its centre to whole texels of a ``res``-texel map, so small camera moves leave the texel
     grid where it was."""
-    valid = np.asarray(frame.gbuffer.valid.numpy(), bool).reshape(-1)
+    gb = frame.own_gbuffer
+    valid = np.asarray(gb.valid.numpy(), bool).reshape(-1)
     R = light_frame(light)
-    P = vec_numpy(frame.gbuffer.p)[valid]
+    P = vec_numpy(gb.p)[valid]
     if not len(P):
         c = np.asarray(frame.scene.center, np.float64)
         P = np.stack([c - frame.scene.radius, c + frame.scene.radius])
@@ -520,13 +521,20 @@ class VirtualMap(Technique):
         raise NotImplementedError
 
     def render_light(self, frame, light, values, ctx):
+        if frame.scene.kind == "sdf":
+            raise InputError(f"{self.name}: scene {frame.scene.name!r} has SDF-only objects ([[sdf]]) that Mitsuba does "
+                             "not see, so the tiles (Mitsuba ray casts from the light) would miss them; compare the SDF "
+                             "techniques on it, or the shadow-map techniques on a scene with Mitsuba twins")
         base = self.base(frame, light, values)
         tiles, cells, stats, aovs = self.plan(frame, light, values, base)
         _, bits = map_settings(frame, light.name, values)
-        gb, scr = frame.gbuffer, frame.screen
+        gb = frame.gbuffer
         npts = dr.width(gb.valid)
-        tile = assign_tiles(base.faces[0], tiles, gb.p, mi.Float(scr.x) + 0.5, mi.Float(scr.y) + 0.5, cells,
-                            int(values["grid"]))
+        if frame.own_gbuffer is gb:           # pixel centres
+            px, py = mi.Float(frame.screen.x) + 0.5, mi.Float(frame.screen.y) + 0.5
+        else:                                 # the points where this frame's camera sees them
+            px, py, _ = frame.own_screen.project(gb.p)
+        tile = assign_tiles(base.faces[0], tiles, gb.p, px, py, cells, int(values["grid"]))
         pts = SubFrame(frame.scene, Points(gb.p, gb.ng, gb.valid))
         v, active, texel = dr.full(mi.Float, 1.0, npts), dr.full(mi.Bool, False, npts), dr.zeros(mi.Float, npts)
         hits = 0
@@ -598,8 +606,9 @@ class FVSM(VirtualMap):
     params = FVSM_PARAMS + TILE_BIAS_PARAMS
 
     def demand(self, frame, base, values) -> dict:
-        """The per-point demand (Dr.Jit) and the SMTMM, SMTG, pyramid and tiles of one light."""
-        scr = frame.screen
+        """The per-point demand (Dr.Jit, at :attr:`~shadowlab.render.frame.FrameContext.own_screen`'s
+        points) and the SMTMM, SMTG, pyramid and tiles of one light."""
+        scr = frame.own_screen
         f0 = base.faces[0]
         dx, dy, x, y = footprint(scr, f0)
         lx, ly = demand_level(dx), demand_level(dy)
@@ -629,7 +638,7 @@ class FVSM(VirtualMap):
                  "discarded_pixels": int(d["dropped"].sum())}
         cx = mi.Int32(dr.clip(dr.floor((d["x"] + 1.0) * 0.5 * n), 0, n - 1))
         cy = mi.Int32(dr.clip(dr.floor((1.0 - d["y"]) * 0.5 * n), 0, n - 1))
-        ok = frame.gbuffer.valid & (dr.abs(d["x"]) <= 1.0) & (dr.abs(d["y"]) <= 1.0)
+        ok = frame.own_gbuffer.valid & (dr.abs(d["x"]) <= 1.0) & (dr.abs(d["y"]) <= 1.0)
         aovs = {"demand_x": dr.select(ok, mi.Float(d["lx"]), -1.0), "demand_y": dr.select(ok, mi.Float(d["ly"]), -1.0),
                 "cell": dr.select(ok, mi.Float(cy * n + cx), -1.0)}
         return tiles, leaf_cells(lv, n), stats, aovs
