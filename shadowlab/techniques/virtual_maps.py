@@ -15,7 +15,9 @@ texture's clear value, lit (``unshadowed_fraction``).
 Eq. (1) of §3.2 (:meth:`shadowlab.render.camera.Camera.eye_unproject`) reconstructs a pixel's
 point from the eye-space depth buffer; it gives the G-buffer's points (to float precision, a
 test), and the pass reads the G-buffer's points so that the technique is evaluated where the
-truth is, also along a camera path (frame 0's points seen by frame t's camera).
+truth is, also along a camera path (frame 0's points seen by frame t's camera). What depends on
+the view itself, the demand and the ``visible`` focus, reads the frame's own view
+(:attr:`~shadowlab.render.frame.FrameContext.own_gbuffer`): along a path each frame has its tiles.
 
 **vtsm** (§3): the virtual map cut into ``grid`` × ``grid`` equal tiles, every one rendered at
 ``t_max`` × ``t_max`` (16 × 16 tiles of 4096² in [Giegl 2007]; 8 × 1024² by default here, 67 M rays a frame).
