@@ -496,3 +496,24 @@ def test_a_frame_seen_by_another_camera_takes_its_demand_and_focus_from_that_vie
     r = t.render(moved, SMALL)
     assert r.visibility["sun"].numpy().shape == outdoor.gbuffer.valid.numpy().shape
     assert r.stats["lights"]["sun"]["tiles"] >= 1
+
+
+def test_discarding_extreme_demands_never_raises_a_cell_demand_or_adds_tiles(outdoor):
+    """On a rendered frame: a larger discard share lowers cell demands (never raises them), makes
+    no more tiles and drops at least as many pixels; with the paper's η0 = 17 every level of this
+    small frame shares the lowest bucket, which the rule cannot split, so nothing is dropped."""
+    t = base.get("fvsm")
+    out = []
+    for frac in (0.0, 0.1, 0.5):
+        # η0 low enough that the histogram tells this small frame's levels apart (17 lumps them all)
+        values = t.resolve({**SMALL, "discard": frac, "smtmm_scale": 1, "eta0": 4, "eta1": 20})
+        d = t.demand(outdoor, t.base(outdoor, outdoor.lights[0], values), values)
+        cdx, cdy, dropped = cell_demand(d["grid"], frac)
+        out.append((cdx, cdy, dropped, len(d["leaves"])))
+    for (ax, ay, da, ta), (bx, by, db, tb) in zip(out, out[1:]):
+        assert np.all(bx <= ax) and np.all(by <= ay) and tb <= ta and db.sum() >= da.sum()
+    assert out[0][2].sum() == 0 and out[-1][2].sum() > 0
+    assert np.any(out[-1][0] < out[0][0]) or np.any(out[-1][1] < out[0][1])
+    values = t.resolve({**SMALL, "discard": 0.5, "smtmm_scale": 1})
+    d = t.demand(outdoor, t.base(outdoor, outdoor.lights[0], values), values)
+    assert d["dropped"].sum() == 0 and d["smtmm"].lx[d["smtmm"].ok].max() < 17
