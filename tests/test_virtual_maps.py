@@ -164,7 +164,7 @@ def _smtmm(cells, levels, n):
     y = 1.0 - (cells[:, 1] + 0.5) * 2.0 / n
     lx, ly = (np.asarray(levels)[:, i] for i in range(2))
     k = len(x)
-    return SMTMM((1, k), 1, x, y, lx, ly, np.ones(k, bool), np.arange(k), np.zeros(k, int))
+    return SMTMM((1, k), 1, x, y, lx, ly, np.ones(k, bool))
 
 
 def test_histogram_buckets_and_the_discard_rule_on_a_synthetic_demand():

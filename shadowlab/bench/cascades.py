@@ -41,7 +41,7 @@ from ..pipeline import load_scene, reference, shimmer, technique_metrics
 from ..reference import store
 from ..render.frame import make_frame
 from ..techniques import base
-from .timing import timed
+from .timing import render_evaluated, timed
 
 SCENE = "street"
 PATH_SCENE = "boulevard"
@@ -70,26 +70,20 @@ def _memory_bytes() -> int:
         return 8 << 30
 
 
-def _render(t, frame, p):
-    r = t.render(frame, p)
-    dr.eval(*r.visibility.values())
-    return r
-
-
 def frame_time(frame, params: dict, repeats: int = 3, lookups: int = 7) -> dict:
     """Median seconds of the shadow pass (the cascades' maps cast afresh, ``repeats`` times) and
     of the lookup (the render with the maps cached, ``lookups`` times) of ``csm`` with
     ``params`` on ``frame``."""
     t = base.get("csm")
     p = t.resolve(params)
-    _render(t, frame, p)                     # compile
+    render_evaluated(t, frame, p)                     # compile
     shadow, lookup = [], []
     for _ in range(repeats):
         frame._views.clear()
-        _, total = timed(lambda: _render(t, frame, p))
-        _, warm = timed(lambda: _render(t, frame, p))
+        _, total = timed(lambda: render_evaluated(t, frame, p))
+        _, warm = timed(lambda: render_evaluated(t, frame, p))
         shadow.append(max(total[0] - warm[0], 0.0))
-    _, warm = timed(lambda: _render(t, frame, p), lookups)
+    _, warm = timed(lambda: render_evaluated(t, frame, p), lookups)
     lookup += warm
     s, lk = float(np.median(shadow)), float(np.median(lookup))
     frame._views.clear()
@@ -124,7 +118,7 @@ def _truth(res, quick: bool, tmp: Path):
 def _quality(frame, truth, tech: str, params: dict) -> dict:
     t = base.get(tech)
     p = t.resolve(params)
-    r = _render(t, frame, p)
+    r = render_evaluated(t, frame, p)
     m, per_light, _ = technique_metrics(frame, truth, r)
     v = frame.image(r.visibility[LIGHT])
     tl = truth.lights[LIGHT]
@@ -173,7 +167,7 @@ def bench_shimmer(res=(256, 144), resolution: int = 1024, frames=None) -> dict:
     results, techs, params = {}, {}, {}
     for label, cfg in SHIMMER_CONFIGS:
         p = t.resolve({**cfg, "resolution": resolution})
-        results[label] = (_render(t, fixed, p), p)
+        results[label] = (render_evaluated(t, fixed, p), p)
         techs[label], params[label] = t, cfg
     out = shimmer(scenes, fixed, results, techniques=techs)
     return {"scene": PATH_SCENE, "resolution": list(res), "map_resolution": resolution, "frames": n,

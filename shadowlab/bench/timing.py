@@ -33,3 +33,10 @@ def warm_median(fn, repeats: int = 5, warmup: int = 1):
     """(last result, median seconds) of ``repeats`` warm runs of ``fn`` after ``warmup`` untimed ones."""
     out, ts = timed(fn, repeats, warmup=warmup)
     return out, float(np.median(ts))
+
+
+def render_evaluated(technique, frame, params):
+    """``technique.render(frame, params)`` with its visibilities evaluated (what a timed run waits for)."""
+    r = technique.render(frame, params)
+    dr.eval(*r.visibility.values())
+    return r

@@ -59,7 +59,7 @@ from ..reference.truth import centre_visibility
 from ..render.frame import make_frame
 from ..techniques import base
 from ..techniques.shadow_map import RES_MAX, RES_MIN
-from .timing import timed
+from .timing import render_evaluated, timed
 
 SCENE = "street"
 PATH_SCENE = "boulevard"
@@ -154,12 +154,6 @@ def light_stats(result) -> dict:
     return out
 
 
-def _render(t, frame, p):
-    r = t.render(frame, p)
-    dr.eval(*r.visibility.values())
-    return r
-
-
 def _target(frame, V=None, mask=None) -> Target:
     gb = frame.gbuffer
     if mask is None:
@@ -184,7 +178,7 @@ def timed_render(name: str, params: dict, target: Target, repeats: int) -> dict:
     the hard-shadow error of the last."""
     t = base.get(name)
     p = t.resolve(params)
-    r, ts = timed(lambda: _render(t, target.frame, p), repeats, warmup=1)
+    r, ts = timed(lambda: render_evaluated(t, target.frame, p), repeats, warmup=1)
     return {"params": params, "frame_s": float(np.median(ts)), "runs_s": ts, **light_stats(r),
             **measures(target, r)}
 
@@ -230,7 +224,7 @@ def along_path(targets: list, name: str, params: dict) -> dict:
     p = t.resolve(params)
     rows, first = [], None
     for tg in targets:
-        r = _render(t, tg.frame, p)
+        r = render_evaluated(t, tg.frame, p)
         first = r if first is None else first
         rows.append({**measures(tg, r), **light_stats(r)})
         tg.frame._views.clear()              # a map or cascade set is cast again where it is needed

@@ -59,6 +59,14 @@ class FrameContext:
             self._cache["screen"] = Screen.from_frame(self)
         return self._cache["screen"]
 
+    def require_mitsuba_geometry(self) -> None:
+        """Refuse (InputError) a scene with SDF-only objects: light views are Mitsuba ray casts from
+        the light, which would not see them."""
+        if self.scene.kind == "sdf":
+            raise InputError(f"scene {self.scene.name!r} has SDF-only objects ([[sdf]]) that Mitsuba does not see, "
+                             "so its shadow maps (Mitsuba ray casts from the light) would miss them; compare the "
+                             "SDF techniques on it, or the shadow-map techniques on a scene with Mitsuba twins")
+
     @property
     def own_gbuffer(self) -> GBuffer:
         """The G-buffer of the frame's own camera: ``gbuffer``, or, where that came from another
@@ -87,10 +95,7 @@ class FrameContext:
         """The light's depth map, cast once per (light, resolution, depth bits, back faces, fit);
         ``fit`` None is :class:`~shadowlab.render.lightview.SceneSphere` (the whole scene)."""
         spec = self.scene.spec.light(light_name)
-        if self.scene.kind == "sdf":
-            raise InputError(f"scene {self.scene.name!r} has SDF-only objects ([[sdf]]) that Mitsuba does not see, "
-                             "so its shadow maps (Mitsuba ray casts from the light) would miss them; compare the "
-                             "SDF techniques on it, or the shadow-map techniques on a scene with Mitsuba twins")
+        self.require_mitsuba_geometry()
         fit = SceneSphere() if fit is None else fit
         key = (light_name, int(res or spec.shadow_map), int(bits or spec.depth_bits), bool(backface), fit)
         if key not in self._views:

@@ -17,7 +17,7 @@ max NDC depth slope per texel, max(|∂d/∂x|·t_x, |∂d/∂y|·t_y) with the 
 
 A :class:`TiledView` reads like a :class:`~shadowlab.render.lightview.LightView` for the
 shadow-map families' receiver and depth-test code (``lookup``, ``fetch``, ``proj``, ``bits``):
-its "face" is the tile. Which tile a point reads is decided beforehand by :meth:`TiledView.assign`
+its "face" is the tile. Which tile a point reads is decided beforehand by :func:`assign_tiles`
 (the deferred shadowing of [Giegl 2007, §3.2]: a tile writes every pixel of its screen rectangle
 whose point falls in the tile's texture; later tiles overwrite earlier ones).
 """
@@ -91,16 +91,36 @@ class Tiles:
         return int(np.sum(self.nx * self.ny))
 
 
+def _opaque(*values, kind=None):
+    """Python numbers as opaque Dr.Jit scalars (``mi.Float`` unless ``kind``)."""
+    return [dr.opaque(kind or mi.Float, float(v)) for v in values]
+
+
+def cells_of(x, y, n: int):
+    """(column, row) of the n × n grid cell holding NDC (x, y), row 0 at the top, clamped to the
+    grid (numpy int64, or Dr.Jit Int32 for Dr.Jit inputs)."""
+    if isinstance(x, dr.ArrayBase):
+        return (mi.Int32(dr.clip(dr.floor((x + 1.0) * 0.5 * n), 0, n - 1)),
+                mi.Int32(dr.clip(dr.floor((1.0 - y) * 0.5 * n), 0, n - 1)))
+    cx = np.clip(np.floor((np.asarray(x) + 1.0) * 0.5 * n), 0, n - 1).astype(np.int64)
+    cy = np.clip(np.floor((1.0 - np.asarray(y)) * 0.5 * n), 0, n - 1).astype(np.int64)
+    return cx, cy
+
+
 def face_ndc(face, p):
-    """World points (Dr.Jit) -> (x, y, light-space z): NDC of the light camera ``face``."""
-    rel = p - mi.Point3f(*face.origin)
+    """World points (Dr.Jit) -> (x, y, light-space z): NDC of the light camera ``face``. The
+    camera's position, scale and shift enter the kernel opaquely: a focus that follows the view
+    changes them every frame without compiling a new kernel."""
+    o = _opaque(*face.origin)
+    s, sx, sy = _opaque(face.scale, *face.shift)
+    rel = p - mi.Point3f(*o)
     qx, qy, qz = (dr.dot(rel, mi.Vector3f(*face.R[r])) for r in range(3))
     if face.ortho:
-        x, y = qx / face.scale, qy / face.scale
+        x, y = qx / s, qy / s
     else:
-        inv = dr.rcp(dr.maximum(qz, 1e-12)) / face.scale
+        inv = dr.rcp(dr.maximum(qz, 1e-12)) / s
         x, y = qx * inv, qy * inv
-    return x - face.shift[0], y - face.shift[1], qz
+    return x - sx, y - sy, qz
 
 
 @dataclass
@@ -115,17 +135,8 @@ class TiledView:
     depth: object             # mi.Float, concatenated tiles, row-major per tile
     slope: object             # mi.Float
     hit_texels: int
-    point_tile: object = None  # mi.UInt32 per point (see assign)
+    point_tile: object = None  # mi.UInt32 per point (see bind)
     point_has: object = None   # mi.Bool per point: some tile holds it
-
-    @property
-    def res(self) -> int:
-        """The largest tile side (texels)."""
-        return int(max(self.tiles.nx.max(initial=0), self.tiles.ny.max(initial=0)))
-
-    @property
-    def nfaces(self) -> int:
-        return len(self.tiles)
 
     def _tab(self, name):
         cache = self.__dict__.setdefault("_tabs", {})
@@ -152,16 +163,12 @@ class TiledView:
         tile = mi.Int32(tile)
         return replace(self, point_tile=mi.UInt32(dr.maximum(tile, 0)), point_has=tile >= 0)
 
-    def assign(self, p, px=None, py=None, cells=None, n: int = 1) -> "TiledView":
-        """:meth:`bind` to :func:`assign_tiles` of this view's own tiles."""
-        return self.bind(assign_tiles(self.proj.faces[0], self.tiles, p, px, py, cells, n))
-
     def lookup(self, p):
-        """:meth:`LightView.lookup` for the points :meth:`assign` bound: ``face`` is the point's
+        """:meth:`LightView.lookup` for the points :meth:`bind` bound: ``face`` is the point's
         tile, ``u``, ``v`` its continuous texel coordinates in that tile, ``inside`` False where no
         tile holds the point, ``texel`` the world size of the tile's larger texel side."""
         if self.point_tile is None:
-            raise ValueError("TiledView.lookup needs the points' tiles: call assign() first")
+            raise ValueError("TiledView.lookup needs the points' tiles: call bind(assign_tiles(...)) first")
         f0 = self.proj.faces[0]
         x, y, qz = self.ndc(p)
         t = self.point_tile
@@ -169,7 +176,8 @@ class TiledView:
         u = (x - g("x0")) * g("sx")
         v = (g("y1") - y) * g("sy")
         texel = g("texel") if f0.ortho else g("texel") * qz
-        inside = self.point_has & (qz > f0.near) & (qz < f0.far) & (dr.abs(x) <= 1.0) & (dr.abs(y) <= 1.0)
+        near, far = _opaque(f0.near, f0.far)
+        inside = self.point_has & (qz > near) & (qz < far) & (dr.abs(x) <= 1.0) & (dr.abs(y) <= 1.0)
         d = f0.ndc_depth(qz if f0.ortho else dr.maximum(qz, 1e-12))
         return {"face": t, "u": u, "v": v, "z": qz, "d": d, "inside": inside, "texel": texel}
 
@@ -203,8 +211,7 @@ def assign_tiles(face, tiles: Tiles, p, px=None, py=None, cells=None, n: int = 1
         cand = [mi.Int32(k) for k in range(T)]
     else:
         tab = mi.Int32(np.asarray(cells, np.int32).ravel())
-        cx = mi.Int32(dr.clip(dr.floor((x + 1.0) * 0.5 * n), 0, n - 1))
-        cy = mi.Int32(dr.clip(dr.floor((1.0 - y) * 0.5 * n), 0, n - 1))
+        cx, cy = cells_of(x, y, n)
         cand = []
         for dy in (-1, 0, 1):
             for dx in (-1, 0, 1):
@@ -262,11 +269,17 @@ def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backfa
     shapes = scene.mi_scene.shapes_dr()
     own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
     alpha = bool(getattr(scene, "has_alpha", False))
-    n_, f_ = f0.near, f0.far
+    # the light camera's placement enters the kernel opaquely (the focus follows the view)
+    n_, f_ = _opaque(f0.near, f0.far)
+    ortho_d = _opaque(f0.near, f0.far - f0.near)              # d = (z − n)/(f − n), as Face.ndc_depth
+    persp_d = _opaque(f0.far / (f0.far - f0.near), f0.near)   # d = f/(f − n)·(1 − n/z)
+    org64 = _opaque(*f0.origin, kind=mi.Float64)
+    scale64, shx, shy = _opaque(f0.scale, *f0.shift, kind=mi.Float64)
+    start = _opaque(min(0.0, f0.near) if f0.ortho else 1e-5 * scene.radius, kind=mi.Float64)[0]
     depth, slope, hits = [], [], 0
     step = chunk_texels()
     for k0 in range(0, total, step):
-        k = dr.arange(mi.UInt32, k0, min(total, k0 + step))
+        k = dr.arange(mi.UInt32, min(total, k0 + step) - k0) + dr.opaque(mi.UInt32, k0)
         t = dr.binary_search(0, T - 1, lambda i: dr.gather(mi.UInt32, off_dr, i + 1) <= k)
         j = k - dr.gather(mi.UInt32, off_dr, t)
         nx = dr.maximum(dr.gather(mi.UInt32, NX, t), 1)   # the LLVM packet's unused lanes gather 0: no x/0 there
@@ -274,24 +287,22 @@ def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backfa
         # texel centres and ray origins in double precision, rounded once: the same world texel gets the
         # same float32 ray wherever the (snapped) light camera sits, so a still texel grid casts the same rays
         F = mi.Float64
-        xb = dr.gather(F, X0, t) + (F(col) + 0.5) * dr.gather(F, DX, t) + f0.shift[0]
-        yb = dr.gather(F, Y1, t) - (F(row) + 0.5) * dr.gather(F, DY, t) + f0.shift[1]
-        xs, ys = xb * f0.scale, yb * f0.scale
+        xb = dr.gather(F, X0, t) + (F(col) + 0.5) * dr.gather(F, DX, t) + shx
+        yb = dr.gather(F, Y1, t) - (F(row) + 0.5) * dr.gather(F, DY, t) + shy
+        xs, ys = xb * scale64, yb * scale64
         Rr = f0.R
         if f0.ortho:
             d = R[2]
-            st = min(0.0, n_)
-            org = mi.Point3f(*[mi.Float(f0.origin[c] + Rr[0][c] * xs + Rr[1][c] * ys + Rr[2][c] * st) for c in range(3)])
+            org = mi.Point3f(*[mi.Float(org64[c] + Rr[0][c] * xs + Rr[1][c] * ys + Rr[2][c] * start) for c in range(3)])
         else:
             dd = [Rr[0][c] * xs + Rr[1][c] * ys + Rr[2][c] for c in range(3)]
             inv = dr.rsqrt(dd[0] * dd[0] + dd[1] * dd[1] + dd[2] * dd[2])
             d = mi.Vector3f(*[mi.Float(a * inv) for a in dd])
-            st = 1e-5 * scene.radius
-            org = mi.Point3f(*[mi.Float(f0.origin[c] + dd[c] * inv * st) for c in range(3)])
+            org = mi.Point3f(*[mi.Float(org64[c] + dd[c] * inv * start) for c in range(3)])
         ray = mi.Ray3f(mi.Point3f(org), mi.Vector3f(d))
         si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha)
         hit = si.is_valid()
-        rel = [mi.Float64(si.p[c]) - f0.origin[c] for c in range(3)]          # light space in double, as light_view
+        rel = [mi.Float64(si.p[c]) - org64[c] for c in range(3)]          # light space in double, as light_view
         q = [mi.Float(rel[0] * Rr[r][0] + rel[1] * Rr[r][1] + rel[2] * Rr[r][2]) for r in range(3)]
         nl = [dr.dot(mi.Vector3f(si.n), R[r]) for r in range(3)]
         tx, ty = dr.gather(mi.Float, TX, t), dr.gather(mi.Float, TY, t)
@@ -301,8 +312,12 @@ def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backfa
         else:
             s = (f_ * n_ / (f_ - n_)) * m / dr.abs(nl[0] * q[0] + nl[1] * q[1] + nl[2] * q[2])
         s = dr.select(hit & dr.isfinite(s), dr.minimum(s, 1.0), 0.0)
-        z = dr.select(hit, q[2], f_)
-        dn = dr.select(hit, f0.ndc_depth(dr.clip(z, n_, f_)), 1.0)
+        z = dr.clip(dr.select(hit, q[2], f_), n_, f_)
+        if f0.ortho:
+            dn = (z - ortho_d[0]) / ortho_d[1]
+        else:
+            dn = persp_d[0] * (1.0 - persp_d[1] / z)
+        dn = dr.select(hit, dn, 1.0)
         dn = dr.clip(dn, 0.0, 1.0)
         if int(bits) != 32:
             mq = float(2 ** int(bits) - 1)

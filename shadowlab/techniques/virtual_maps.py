@@ -89,7 +89,7 @@ import numpy as np
 from ..errors import InputError
 from ..render.gbuffer import vec_numpy
 from ..render.lightview import FrustumSlice, LightSquare, SceneSphere, light_frame, projection
-from ..render.tiles import Tiles, assign_tiles, face_ndc, render_tiles, tile_groups
+from ..render.tiles import Tiles, assign_tiles, cells_of, face_ndc, render_tiles, tile_groups
 from .base import _REGISTRY, LightResult, Param, Technique, param_table_markdown, register
 from .cascades import CSM_PARAMS, shadow_range
 from .shadow_map import (BIAS_PARAMS, Points, SubFrame, depth_test, map_settings, opaque_bias, receiver,
@@ -200,8 +200,7 @@ def footprint(screen, face):
 @dataclass
 class SMTMM:
     """The sampled demand: per SMTMM pixel (numpy, flat, row-major over ``shape`` = (h, w)) its
-    map NDC (x, y), levels (lx, ly), whether it holds a surface inside the map (``ok``), and
-    the grid pixel it samples (``gx``, ``gy``)."""
+    map NDC (x, y), levels (lx, ly) and whether it holds a surface inside the map (``ok``)."""
 
     shape: tuple
     scale: int
@@ -210,8 +209,6 @@ class SMTMM:
     lx: np.ndarray
     ly: np.ndarray
     ok: np.ndarray
-    gx: np.ndarray
-    gy: np.ndarray
 
 
 def sample_smtmm(screen, x, y, lx, ly, scale: int) -> SMTMM:
@@ -225,19 +222,11 @@ def sample_smtmm(screen, x, y, lx, ly, scale: int) -> SMTMM:
     g = lambda a, t=mi.Float: dr.gather(t, a, idx).numpy()  # noqa: E731
     X, Y = g(x).astype(np.float64), g(y).astype(np.float64)
     ok = g(screen.valid, mi.Bool).astype(bool) & (np.abs(X) <= 1.0) & (np.abs(Y) <= 1.0)
-    return SMTMM((h, w), int(scale), X, Y, g(lx).astype(np.int64), g(ly).astype(np.int64), ok,
-                 GX.ravel(), GY.ravel())
+    return SMTMM((h, w), int(scale), X, Y, g(lx).astype(np.int64), g(ly).astype(np.int64), ok)
 
 
 # ----------------------------------------------------------------------------------------------
 # the tile grid (SMTG, §4.4), the discard rule and the pyramid (§4.5)
-
-def cells_of(x, y, n: int):
-    """(column, row) of the n × n grid cell holding NDC (x, y) (row 0 at the top)."""
-    cx = np.clip(np.floor((np.asarray(x) + 1.0) * 0.5 * n), 0, n - 1).astype(np.int64)
-    cy = np.clip(np.floor((1.0 - np.asarray(y)) * 0.5 * n), 0, n - 1).astype(np.int64)
-    return cx, cy
-
 
 def bucket(levels, eta0: int, eta1: int):
     """Histogram bucket of demand levels: 0 below η0, L − η0 + 1 for η0 ≤ L ≤ η1, η1 − η0 + 2 above η1."""
@@ -302,8 +291,6 @@ def cell_demand(g: Grid, fraction: float) -> tuple:
         keep = above > allowed[..., None]
         b = np.where(keep.any(-1), nb - 1 - np.argmax(keep[..., ::-1], axis=-1), 0)
         lvl = np.where(b == nb - 1, g.max[a], np.where(b == 0, g.lo_max[a], g.eta0 + b - 1))
-        # a middle bucket's level never exceeds the cell's own maximum
-        lvl = np.minimum(lvl, g.max[a])
         out[a] = np.where(g.count > 0, lvl, -1)
         nxt = np.concatenate([above[..., 1:], np.zeros_like(above[..., :1])], axis=-1)
         dropped = np.maximum(dropped, np.take_along_axis(nxt, b[..., None], -1)[..., 0] * (g.count > 0))
@@ -498,7 +485,7 @@ class VirtualMap(Technique):
         return values
 
     def prepare(self, frame, values, ctx):
-        ctx.bias = opaque_bias({**values, "resolution": 0})
+        ctx.bias = opaque_bias(values)
 
     def fit_params(self, values: dict, family_defaults) -> tuple:
         """``shadowlab fit``'s default parameters: ``hard``'s (the biases of the test every tile
@@ -523,10 +510,7 @@ class VirtualMap(Technique):
         raise NotImplementedError
 
     def render_light(self, frame, light, values, ctx):
-        if frame.scene.kind == "sdf":
-            raise InputError(f"{self.name}: scene {frame.scene.name!r} has SDF-only objects ([[sdf]]) that Mitsuba does "
-                             "not see, so the tiles (Mitsuba ray casts from the light) would miss them; compare the SDF "
-                             "techniques on it, or the shadow-map techniques on a scene with Mitsuba twins")
+        frame.require_mitsuba_geometry()
         base = self.base(frame, light, values)
         tiles, cells, stats, aovs = self.plan(frame, light, values, base)
         _, bits = map_settings(frame, light.name, values)
@@ -632,14 +616,12 @@ class FVSM(VirtualMap):
         tiles = tile_rects(lv, o, rect_scale, (scr.width, scr.height))
         mem = {m: 4 * v for m, v in memory_texels(lv.w, lv.h, int(values["t_max"]), o).items()}
         root = d["pyramid"]
-        stats = {"memory_bytes": mem[values["tile_mode"]] if len(lv) else 0,
-                 "memory_modes": mem if len(lv) else {m: 0 for m in TILE_MODES},
+        stats = {"memory_bytes": mem[values["tile_mode"]], "memory_modes": mem,
                  "traversal_depth": int(np.max(np.maximum(lv.px, lv.py))) if len(lv) else 0,
                  "demand": [int(root.lx[0, 0][0, 0]), int(root.ly[0, 0][0, 0])],
                  "smtmm": [int(d["smtmm"].shape[1]), int(d["smtmm"].shape[0])],
                  "discarded_pixels": int(d["dropped"].sum())}
-        cx = mi.Int32(dr.clip(dr.floor((d["x"] + 1.0) * 0.5 * n), 0, n - 1))
-        cy = mi.Int32(dr.clip(dr.floor((1.0 - d["y"]) * 0.5 * n), 0, n - 1))
+        cx, cy = cells_of(d["x"], d["y"], n)
         ok = frame.own_gbuffer.valid & (dr.abs(d["x"]) <= 1.0) & (dr.abs(d["y"]) <= 1.0)
         aovs = {"demand_x": dr.select(ok, mi.Float(d["lx"]), -1.0), "demand_y": dr.select(ok, mi.Float(d["ly"]), -1.0),
                 "cell": dr.select(ok, mi.Float(cy * n + cx), -1.0)}
