@@ -40,7 +40,7 @@ def test_rays_match_mitsuba_sensor_at_pixel_centres(scene):
     # the G-buffer's own order is pixel_uv's
     from shadowlab.render.camera import pixel_uv
     assert np.array_equal(cam.pixel_uv(2), pixel_uv(64, 48, 2))
-    from shadowlab.exchange.mesh import matrix_of
+    from shadowlab.scene.mesh import matrix_of
     assert np.abs(matrix_of(scene.sensor.world_transform()) - cam.camera_to_world).max() < 1e-6
 
 

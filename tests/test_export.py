@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from shadowlab.errors import InputError
-from shadowlab.exchange.mesh import sagitta
+from shadowlab.scene.mesh import sagitta
 from shadowlab.exchange.ply import read_ply
 
 ROOT = Path(__file__).resolve().parents[1]

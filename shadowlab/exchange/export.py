@@ -53,7 +53,7 @@ from ..report.outdir import claim_dir
 from ..scene import lights as lights_mod
 from ..scene.build import build, sensor_dict, shape_dicts
 from ..scene.spec import SceneSpec, load_spec, resolve
-from .mesh import matrix_of, sagitta, triangulate
+from ..scene.mesh import matrix_of, sagitta, triangulate
 from .mitsuba_xml import dict_to_xml
 from .ply import write_ply
 

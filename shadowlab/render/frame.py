@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
+from ..scene.lights import forward as light_forward
+from ..scene.mesh import scene_triangles
 from ..scene.twins import sdf_of
 from . import sdf_gbuffer
 from .camera import Camera
@@ -26,6 +28,7 @@ from .gbuffer import GBuffer, gbuffer, vec_numpy
 from .lightview import LightView, SceneSphere, light_view
 from .screen import Screen
 from .shading import unshadowed
+from .top_tree import TopTree, build_top_tree
 
 
 @dataclass
@@ -101,6 +104,32 @@ class FrameContext:
         if key not in self._views:
             self._views[key] = light_view(self.scene, spec, res=key[1], bits=key[2], backface=key[3], fit=fit)
         return self._views[key]
+
+    def triangles(self, segments: int = 64) -> np.ndarray:
+        """The scene's triangles (T×3×3, world; :func:`~shadowlab.scene.mesh.scene_triangles`), made
+        once per tessellation; InputError for a scene without any (e.g. SDF objects only)."""
+        key = ("triangles", int(segments))
+        if key not in self._cache:
+            self.require_mitsuba_geometry()
+            V, _ = scene_triangles(self.scene.spec, segments)
+            if not len(V):
+                raise InputError(f"scene {self.scene.name!r} has no triangles (no [[shapes]]): a TOP tree is built "
+                                 "from the scene's triangles; add a mesh or a primitive shape")
+            self._cache[key] = V
+        return self._cache[key]
+
+    def top_tree(self, light_name: str, segments: int = 64, order: str = "light") -> TopTree:
+        """The TOP tree of the light's centre (a point light's position, or a directional light at
+        infinity) over :meth:`triangles`, built once per (light, tessellation, insertion order)."""
+        key = ("top_tree", light_name, int(segments), order)
+        if key not in self._cache:
+            spec = self.scene.spec.light(light_name)
+            if spec.kind == "directional":
+                light = [-x for x in light_forward(spec)] + [0.0]
+            else:
+                light = list(spec.position) + [1.0]
+            self._cache[key] = build_top_tree(self.triangles(segments), np.asarray(light, np.float64), order=order)
+        return self._cache[key]
 
     def lit_mask(self, light_name: str) -> np.ndarray:
         """(H, W) bool: pixels the light reaches at all (U_L > 0); visibility only matters there."""

@@ -29,7 +29,9 @@ import numpy as np
 
 from ..errors import SceneError
 
-__all__ = ["triangulate", "matrix_of", "sagitta"]
+from .build import shape_dicts
+
+__all__ = ["triangulate", "matrix_of", "sagitta", "scene_triangles"]
 
 
 def sagitta(segments: int) -> float:
@@ -162,3 +164,19 @@ def triangulate(d: dict, segments: int = 64):
         M = M @ S
     Pw, Nw = _apply(M, P, N)
     return Pw, Nw, UV, _oriented(Pw, Nw, F)
+
+
+def scene_triangles(spec, segments: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """Every triangle of the scene's shapes (``spec.shapes``; the lights' own emitting shapes are
+    not among them), world space: (T×3×3 float64 vertices, T int shape index into ``spec.shapes``).
+    Rectangles and cubes are exact, PLY/OBJ meshes as Mitsuba loads them, curved primitives
+    inscribed with ``segments`` segments (the table above)."""
+    tris, owner = [], []
+    for k, s in enumerate(spec.shapes):
+        for d in shape_dicts(s).values():
+            P, _, _, F = triangulate(d, segments)
+            tris.append(P[F])
+            owner.append(np.full(len(F), k, np.int32))
+    if not tris:
+        return np.zeros((0, 3, 3)), np.zeros(0, np.int32)
+    return np.concatenate(tris), np.concatenate(owner)

@@ -1,0 +1,287 @@
+"""TOP trees: exact point-light visibility from partitioned shadow volumes [Gerhards 2015],
+[Mora 2016], as [Wang 2022, §1.2] (Algorithms 1 and 2) uses them.
+
+Every triangle T = (v0, v1, v2) of the scene gives four planes, 4-vectors (n, d) with
+value(x) = n·x + d at a point x, unit n, and the light in homogeneous coordinates
+L = (l, w) (w = 1: a point at l; w = 0: a light at infinity in direction l):
+
+* three *shadow planes*, one per edge (a, b): the plane through a, b and the light,
+  n ∝ (b − a) × (l − w·a), d = −n·a, oriented so that T lies on its negative side;
+* one *capping plane*, T's own plane, oriented so that the light lies on its positive side.
+
+"Positive" is the side the light can reach. T's shadow volume is the negative side of all four.
+
+A node is a plane and three links, positive / intersecting / negative (−1: an empty leaf).
+A triangle's subtree is the chain of its three shadow planes, each linked to the next by its
+negative link, then its capping plane.
+
+**Algorithm 1 (build).** A triangle descends from the root, taking at each node the link of its
+side of that node's plane, until it reaches an empty link. It then hangs its subtree there.
+A triangle that reaches a capping plane's negative side is dropped: it lies wholly in the shadow of
+that plane's triangle and adds no shadow.
+
+The build is level-synchronous: every pending triangle takes one step per round (numpy over all
+of them, no loop over triangles or nodes). Where several triangles reach the same empty link in
+the same round, the first in insertion order takes it and the others descend into its subtree in
+the next round. Every triangle that reaches a link reaches it in the round equal to the link's
+depth, so the tree is the one sequential insertion in that order builds.
+
+Insertion order: nearest to the light first by default (``light``), or as given (``scene``).
+The visibility does not depend on the order; the size and depth of the tree do.
+
+A triangle's side of a plane is taken with a tolerance ε_b = 1e-9·R (R the largest |vertex|
+about the tree's origin). Neighbours sharing an edge therefore see that edge's vertices as on
+the plane, and are sorted by their third vertex.
+
+**Algorithm 2 (query)**, per point with a stack, in one Dr.Jit loop over all points:
+
+* pop a node;
+* at a shadow plane, push the intersecting child and the child on the point's side;
+* at a capping plane, a point on the negative side is in shadow (0); otherwise push the
+  intersecting and positive children;
+* an empty stack means lit (1).
+
+Empty links are not pushed. The stack is a :func:`drjit.alloc_local` buffer with room for the
+tree's depth + 1 entries (a pop pushes at most two children one level deeper), rounded up to a
+power of two so that similar trees share a kernel.
+
+The query point is the surface point moved off its surface toward the light by Mitsuba's own
+shadow-ray offset, (1 + max|p_i|)·``RAY_EPSILON`` along the geometric normal. An occluder
+closer to the surface than that is missed by both, so the visibility equals a Mitsuba shadow ray's.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+__all__ = ["TopTree", "build_top_tree", "triangle_planes", "query", "RAY_EPSILON", "ORDERS"]
+
+#: Mitsuba's ``math::RayEpsilon<float>`` (1500 · 2⁻²⁴): a shadow ray leaves its surface this far
+#: (times 1 + the largest coordinate) along the normal.
+RAY_EPSILON = 1500.0 * 2.0 ** -24
+#: insertion orders of :func:`build_top_tree`
+ORDERS = ("light", "scene")
+_LEAF = -1
+
+
+@dataclass
+class TopTree:
+    """A built TOP tree. ``planes[k]`` = (n, d) of node k about ``origin`` (world = origin + x);
+    ``cap[k]``: a capping plane; ``child[k]`` = (positive, intersecting, negative) node indices,
+    −1 for an empty leaf. ``depth``: most nodes on a root-to-leaf path. Counts: ``triangles``
+    (inserted), ``dropped`` (wholly in another's shadow), ``degenerate`` (no area, or the light
+    in their plane: no shadow volume)."""
+
+    planes: np.ndarray
+    cap: np.ndarray
+    child: np.ndarray
+    origin: np.ndarray
+    light: np.ndarray
+    depth: int
+    triangles: int
+    dropped: int
+    degenerate: int
+    rounds: int
+    seconds: float
+
+    @property
+    def nodes(self) -> int:
+        return len(self.planes)
+
+    def stats(self) -> dict:
+        """JSON-able size and build figures."""
+        return {"nodes": self.nodes, "depth": self.depth, "triangles": self.triangles, "dropped": self.dropped,
+                "degenerate": self.degenerate, "build_rounds": self.rounds, "build_seconds": self.seconds}
+
+    def arrays(self) -> dict:
+        """The tree as Dr.Jit arrays (made once): plane components, links, the capping flag."""
+        if not hasattr(self, "_dr"):
+            pl = np.ascontiguousarray(self.planes.astype(np.float32))
+            self._dr = {"a": mi.Float(pl[:, 0]), "b": mi.Float(pl[:, 1]), "c": mi.Float(pl[:, 2]),
+                        "d": mi.Float(pl[:, 3]), "cap": mi.Bool(self.cap),
+                        "p": mi.Int32(self.child[:, 0]), "i": mi.Int32(self.child[:, 1]),
+                        "n": mi.Int32(self.child[:, 2])}
+            dr.eval(*self._dr.values())
+        return self._dr
+
+
+def _unit_planes(n, d):
+    """Normalise planes (n, d) to unit normals; returns (n, d, |n| before)."""
+    ln = np.linalg.norm(n, axis=-1)
+    s = 1.0 / np.maximum(ln, 1e-300)
+    return n * s[..., None], d * s, ln
+
+
+def triangle_planes(V: np.ndarray, light: np.ndarray):
+    """(planes T×4×4: shadow planes of edges v0v1, v1v2, v2v0 then the capping plane, degenerate T
+    bool) of triangles ``V`` (T×3×3, about the tree's origin) for the homogeneous ``light`` (l, w)."""
+    V = np.asarray(V, np.float64)
+    l, w = np.asarray(light[:3], np.float64), float(light[3])
+    out = np.zeros((len(V), 4, 4))
+    bad = np.zeros(len(V), bool)
+    scale = max(float(np.abs(V).max(initial=0.0)), 1e-30)
+    for e in range(3):
+        a, b, c = V[:, e], V[:, (e + 1) % 3], V[:, (e + 2) % 3]
+        n = np.cross(b - a, l[None] - w * a)
+        d = -np.einsum("ij,ij->i", n, a)
+        n, d, ln = _unit_planes(n, d)
+        side = np.einsum("ij,ij->i", n, c) + d
+        flip = side > 0
+        n[flip], d[flip] = -n[flip], -d[flip]
+        bad |= (ln <= 1e-24 * scale * scale) | (np.abs(side) <= 1e-12 * scale)
+        out[:, e, :3], out[:, e, 3] = n, d
+    n = np.cross(V[:, 1] - V[:, 0], V[:, 2] - V[:, 0])
+    d = -np.einsum("ij,ij->i", n, V[:, 0])
+    n, d, ln = _unit_planes(n, d)
+    at_light = n @ l + d * w
+    flip = at_light < 0
+    n[flip], d[flip] = -n[flip], -d[flip]
+    bad |= (ln <= 1e-24 * scale * scale) | (np.abs(at_light) <= 1e-12 * (scale if w else 1.0))
+    out[:, 3, :3], out[:, 3, 3] = n, d
+    return out, bad
+
+
+def _insertion_order(V, light, order):
+    if isinstance(order, np.ndarray):
+        return np.asarray(order, np.int64)
+    if order == "scene":
+        return np.arange(len(V))
+    l, w = light[:3], light[3]
+    if w:
+        key = np.linalg.norm(V - l, axis=-1).min(1)
+    else:
+        key = -(V @ l).max(1)  # farthest along the direction toward the light first
+    return np.argsort(key, kind="stable")
+
+
+def build_top_tree(V: np.ndarray, light, *, origin=None, order="light") -> TopTree:
+    """Algorithm 1 over the triangles ``V`` (T×3×3 world-space vertices) for ``light``: a point
+    (x, y, z, 1) or a direction toward a light at infinity (x, y, z, 0). ``order``: ``light``
+    (nearest first), ``scene`` (as given) or an array permutation of the triangles."""
+    t0 = time.perf_counter()
+    light = np.asarray(light, np.float64)
+    V = np.asarray(V, np.float64)
+    if origin is None:
+        origin = light[:3] if light[3] else (V.reshape(-1, 3).min(0) + V.reshape(-1, 3).max(0)) / 2
+    origin = np.asarray(origin, np.float64)
+    Vo = V - origin
+    lo = np.concatenate([light[:3] - origin * light[3], light[3:]])
+    planes, bad = triangle_planes(Vo, lo)
+    seq = _insertion_order(Vo, lo, order)
+    seq = seq[~bad[seq]]
+    eps = 1e-9 * max(float(np.abs(Vo).max(initial=0.0)), 1e-30)
+    cap_n = 4 * len(seq)
+    P = np.zeros((cap_n, 4))
+    is_cap = np.zeros(cap_n, bool)
+    child = np.full((cap_n, 3), _LEAF, np.int64)
+    depth = np.zeros(cap_n, np.int64)
+    used = 0
+
+    def hang(tri, parent_depth):
+        """Allocate the 4-node subtrees of triangles ``tri``; returns their roots."""
+        nonlocal used
+        k = len(tri)
+        base = used + 4 * np.arange(k)
+        for j in range(4):
+            P[base + j] = planes[tri, j]
+            depth[base + j] = parent_depth + 1 + j
+        for j in range(3):
+            child[base + j, 2] = base + j + 1
+        is_cap[base + 3] = True
+        used += 4 * k
+        return base
+
+    rounds = dropped = 0
+    if len(seq):
+        hang(seq[:1], 0)
+        pend = seq[1:]
+        node = np.zeros(len(pend), np.int64)
+        while len(pend):
+            rounds += 1
+            pl = P[node]
+            vals = np.einsum("tvk,tk->tv", Vo[pend], pl[:, :3]) + pl[:, 3:4]
+            pos = (vals > eps).any(1)
+            neg = (vals < -eps).any(1)
+            link = np.where(pos & ~neg, 0, np.where(neg & ~pos, 2, 1))
+            drop = is_cap[node] & (link == 2)
+            nxt = child[node, link]
+            down = (nxt != _LEAF) & ~drop
+            node[down] = nxt[down]
+            c = np.nonzero((nxt == _LEAF) & ~drop)[0]
+            done = drop.copy()
+            if len(c):
+                key = node[c] * 3 + link[c]
+                uk, first, inv = np.unique(key, return_index=True, return_inverse=True)
+                win = c[first]
+                roots = hang(pend[win], depth[uk // 3])
+                child[uk // 3, uk % 3] = roots
+                node[c] = roots[inv.ravel()]
+                done[win] = True
+            dropped += int(drop.sum())
+            pend, node = pend[~done], node[~done]
+    return TopTree(planes=P[:used].copy(), cap=is_cap[:used].copy(), child=child[:used].astype(np.int32),
+                   origin=origin, light=lo, depth=int(depth[:used].max(initial=0)), triangles=used // 4,
+                   dropped=dropped, degenerate=int(bad.sum()), rounds=rounds, seconds=time.perf_counter() - t0)
+
+
+def stack_size(tree: TopTree) -> int:
+    """Room the query's stack needs (depth + 1), rounded up to a power of two (≥ 16)."""
+    return max(16, 1 << int(tree.depth + 1 - 1).bit_length())
+
+
+def offset_point(tree: TopTree, p, ng):
+    """The query point of surface point ``p`` (world, Dr.Jit) with geometric normal ``ng``:
+    moved by Mitsuba's shadow-ray offset toward the light, about the tree's origin."""
+    l, w = tree.light, tree.light[3]
+    o = mi.Point3f(*[float(x) for x in tree.origin])
+    if w:
+        to_light = mi.Point3f(*[float(x) for x in l[:3] + tree.origin]) - p
+    else:
+        to_light = mi.Vector3f(*[float(x) for x in l[:3]])
+    ng = mi.Vector3f(ng)
+    mag = (1.0 + dr.max(dr.abs(p))) * RAY_EPSILON
+    mag = dr.mulsign(mag, dr.dot(ng, to_light))
+    return mi.Point3f(dr.fma(mag, ng, p)) - o
+
+
+def query(tree: TopTree, x, active=True):
+    """Algorithm 2 at points ``x`` (Dr.Jit Point3f about ``tree.origin``, e.g. from
+    :func:`offset_point`) where ``active``: (visibility Float, 1 lit / 0 shadowed; nodes visited
+    UInt32). Inactive points and an empty tree give 1 and 0 visits."""
+    m = dr.width(x)
+    if tree.nodes == 0:
+        return dr.full(mi.Float, 1.0, m), dr.zeros(mi.UInt32, m)
+    A = tree.arrays()
+    size = stack_size(tree)
+    stack = dr.alloc_local(mi.Int32, size, dr.zeros(mi.Int32, m))
+    sp = dr.select(active, dr.full(mi.UInt32, 1, m), 0)  # width m: loop state must not broadcast
+    vis = dr.full(mi.Float, 1.0, m)
+    visits = dr.zeros(mi.UInt32, m)
+
+    def body(sp, vis, visits, stack):
+        sp = dr.maximum(sp, 1) - 1  # lanes already done still run the body in a packet: keep indices in range
+        n = stack.read(sp)
+        val = (dr.gather(mi.Float, A["a"], n) * x.x + dr.gather(mi.Float, A["b"], n) * x.y
+               + dr.gather(mi.Float, A["c"], n) * x.z + dr.gather(mi.Float, A["d"], n))
+        cap = dr.gather(mi.Bool, A["cap"], n)
+        shadow = cap & (val < 0.0)
+        vis = dr.select(shadow, 0.0, vis)
+        ci = dr.gather(mi.Int32, A["i"], n)
+        side = dr.select(cap | (val > 0.0), dr.gather(mi.Int32, A["p"], n), dr.gather(mi.Int32, A["n"], n))
+        push_i = ~shadow & (ci >= 0)
+        stack.write(ci, sp, push_i)
+        sp = dr.select(push_i, sp + 1, sp)
+        push_s = ~shadow & (side >= 0)
+        stack.write(side, sp, push_s)
+        sp = dr.select(push_s, sp + 1, sp)
+        sp = dr.select(shadow, 0, sp)
+        return sp, vis, visits + 1, stack
+
+    sp, vis, visits, stack = dr.while_loop((sp, vis, visits, stack), lambda sp, vis, visits, stack: sp > 0, body,
+                                           labels=("sp", "vis", "visits", "stack"), label="top_tree_query")
+    return vis, visits

@@ -1,0 +1,350 @@
+"""Shadow map fused with deep partitioned shadow volumes: ``dpsv``, ``sm_dpsv``, ``sm_dpsv_soft``
+[Wang 2022, §1.2–1.4], after [Gerhards 2015] and [Mora 2016].
+
+``dpsv``: each shading point's visibility of the light's centre from the light's TOP tree
+(:mod:`shadowlab.render.top_tree`: Algorithm 1 builds it from every triangle of the scene,
+Algorithm 2 queries it with a per-point stack). It is exact up to the tolerance of a Mitsuba
+shadow ray, which it shares.
+
+``sm_dpsv`` (§1.3, fused hard shadows). The point is projected into ``hard``'s shadow map
+(every bias of ``hard``, :data:`~shadowlab.techniques.shadow_map.BIAS_PARAMS`). Its depth test
+is repeated one texel away in each of the four directions, (u ± 1, v) and (u, v ± 1).
+
+* Where any of the four disagrees with the centre's result, the point is a *shadow-edge point*
+  and takes the tree's visibility.
+* Elsewhere the shadow map's result stands.
+
+Only edge points enter the tree query's loop. A point the classifier misses keeps the shadow
+map's (aliased) answer: all four neighbours agree with it, yet the true visibility differs
+(:func:`edge_misses` counts them).
+
+``sm_dpsv_soft`` (§1.4, soft shadows from the visibility map):
+
+1. The *visibility map* is the fused hard visibility of every G-buffer point: a screen-space
+   image, as the paper's shading-point visibility map.
+2. A *sparse blocker search* looks in the shadow map over PCSS's search square,
+   w_search = (z̃ − z_near)/z̃ · w_light (texels; ``pcss``'s formula and units). Taps lie on a
+   grid with spacing Δ texels: Δ = ``interval`` (``interval_mode`` = ``constant``) or
+   Δ = ``interval_k``·z̃/z_far (``depth``: coarser far from the light). The grid has at most
+   ``search_taps`` taps per axis. Each tap is ``hard``'s nearest-texel test against the
+   receiver's tangent plane ([Isidoro 2006], as ``pcss``'s ``receiver_plane``). The blocker depth
+   z_avg is the mean depth of the taps that test "shadowed".
+3. *Penumbra*: w_p = (z̃ − z_avg)/z_avg · w_light, world units at the receiver. For a directional
+   light it is (z̃ − z_avg)·tan w_light. w_light = ``light_scale`` × the light's size, the shared
+   convention; a point light's size is 0, so its shadow stays hard unless ``light_scale`` and a
+   radius give it one.
+4. *Filtering* the visibility map over the square of full width w_p at the receiver.
+   [Wang 2022] divides the filter size by the receiver's distance to the light so that moving the
+   camera does not change it. In a screen-space map that means: the kernel is fixed in world units
+   (w_p, a function of light-space depths only). It becomes w_p / s pixels, where s is the world
+   size of one pixel at the receiver's view depth, so a camera move changes the pixel count but
+   not the penumbra. Taps (``filter_samples``, ``pcss``'s centred Hammersley set) are rejected:
+   off any surface, or farther than ``depth_reject`` × w_p from the receiver's tangent plane (the
+   shadow of one surface is not spread onto another). The accepted taps are averaged, box weights.
+   A point without blockers, or whose kernel is under one pixel, keeps its fused hard visibility.
+
+Light kinds. ``dpsv`` and ``sm_dpsv`` claim pixel-exact hard shadows. That exists only for a light
+with one point of emission: point and spot lights, and directional lights as a light at infinity.
+An area light's shadow is soft, so they refuse rect, disk and sphere lights. ``sm_dpsv_soft``
+takes every kind: its tree and map are those of the light's centre, as ``pcss``'s map, and its
+penumbra comes from the light's size.
+
+Scenes. The tree holds every triangle of every shape. Rectangles, cubes and PLY/OBJ meshes are
+exactly the triangles Mitsuba intersects. Curved primitives (sphere, disk, cylinder) are inscribed
+with ``segments`` segments: their shadows are the tessellation's, which differs from Mitsuba's
+analytic surface by up to the sagitta r·(1 − cos π/s). Alpha-tested casters are refused: the
+tree has no texture lookups. SDF-only scenes have no triangles and are refused too.
+
+Stats: the tree's ``nodes``, ``depth``, ``triangles`` and ``build_seconds`` per light;
+``nodes_per_query`` (mean nodes visited per tree query); for the fused techniques
+``edge_fraction`` (share of the active points that query the tree). AOVs: ``nodes_visited``,
+``edge`` (fused), ``penumbra_width``, ``filter_pixels``, ``blocker_depth`` (soft).
+"""
+
+from __future__ import annotations
+
+
+import drjit as dr
+import mitsuba as mi
+
+from ..render.top_tree import ORDERS, offset_point, query
+from ..scene.lights import forward as light_forward
+from .base import LightResult, Param, Pooled, Technique, light_scale_param, param_table_markdown, register, scaled_size
+from .pcss import PCF_COUNTS, _pattern_arrays, pcf_pattern, receiver_plane_gradient, scene_light_size
+from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, depth_test, map_entry, map_stats, receiver, stored_depth,
+                         texel_index)
+
+SOURCE = "[Wang 2022, §1.2]"
+SOFT_SOURCE = "[Wang 2022, §1.4]"
+POINT_KINDS = ("point", "spot", "directional")
+
+TREE_PARAMS = (
+    Param("segments", 64, "int", 3, 1024, "segments", False, source="[Wang 2022, §1.2]",
+          doc="tessellation of curved primitives (sphere, disk, cylinder) into the tree's triangles; meshes, "
+              "cubes and rectangles are exact"),
+    Param("order", "light", "choice", choices=ORDERS, source="[Gerhards 2015]",
+          doc="insertion order of Algorithm 1: light = nearest to the light first, scene = as the scene lists "
+              "them; the visibility does not depend on it, the tree's size and depth do"),
+)
+
+SOFT_PARAMS = (
+    light_scale_param(SOFT_SOURCE, differentiable=False,
+                      doc="w_light of the penumbra estimate (pcss's light size: rect √(w·h), disk/sphere √π·r, "
+                          "directional √π/2·angular diameter)"),
+    Param("interval_mode", "constant", "choice", choices=("constant", "depth"), source=SOFT_SOURCE,
+          doc="blocker-search tap spacing: constant = `interval` texels; depth = interval_k·z̃/z_far texels"),
+    Param("interval", 2.0, "float", 0.25, 64.0, "texels", False, source=SOFT_SOURCE,
+          doc="tap spacing of the sparse blocker search when interval_mode = constant"),
+    Param("interval_k", 4.0, "float", 0.25, 256.0, "texels", False, source=SOFT_SOURCE,
+          doc="k of the depth-dependent spacing k·z̃/z_far (interval_mode = depth)"),
+    Param("search_taps", 8, "int", 1, 32, "taps per axis", False, source=SOFT_SOURCE,
+          doc="most taps per axis of the sparse search grid (the spacing widens to cover w_search)"),
+    Param("filter_samples", 32, "choice", units="taps", choices=PCF_COUNTS, source=SOFT_SOURCE,
+          doc="taps of the screen-space filter of the visibility map (centred Hammersley set, box weights)"),
+    Param("depth_reject", 0.5, "float", 0.0, 10.0, "× w_p", False, source=SOFT_SOURCE,
+          doc="a filter tap farther than this × the penumbra width from the receiver's tangent plane is rejected"),
+)
+
+
+def _tree_stats(tree) -> dict:
+    st = tree.stats()
+    return {"tree_nodes": st["nodes"], "tree_depth": st["depth"], "tree_triangles": st["triangles"],
+            "tree_dropped": st["dropped"], "tree_build_seconds": st["build_seconds"]}
+
+
+def tree_visibility(frame, light, values, active):
+    """(visibility, nodes visited, tree) of ``light`` at the G-buffer points where ``active``."""
+    tree = frame.top_tree(light.name, int(values["segments"]), values["order"])
+    gb = frame.gbuffer
+    x = offset_point(tree, gb.p, gb.ng)
+    vis, visits = query(tree, x, active)
+    return vis, visits, tree
+
+
+def edge_classify(view, rec, bias):
+    """(hard visibility at the point's texel, shadow-edge mask): the depth test one texel away in
+    each of the four directions disagrees with the centre's [Wang 2022, §1.3]."""
+    ix, iy = texel_index(rec["u"]), texel_index(rec["v"])
+    h0 = depth_test(view, rec, ix, iy, bias)
+    edge = mi.Bool(False)
+    for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        edge |= depth_test(view, rec, ix + dx, iy + dy, bias) != h0
+    return h0, edge & rec["active"]
+
+
+class _TreeFamily:
+    """What every technique of the family shares: the scenes a TOP tree can hold."""
+
+    source = "[Wang 2022]"
+
+    def unsupported(self, spec) -> str | None:
+        if not spec.shapes:
+            return (f"{self.name}: the scene has no triangles (no [[shapes]]); a TOP tree is built from the scene's "
+                    "triangles: add a mesh or a primitive shape")
+        if spec.kind == "sdf":
+            return (f"{self.name}: the scene has SDF-only objects ([[sdf]]) without triangles, which the TOP tree "
+                    "would miss: use the SDF techniques (sdf_hard, sdf_quilez, ...) on it")
+        if any(s.alpha_tested for s in spec.shapes):
+            return (f"{self.name}: the scene has alpha-tested casters; a TOP tree holds whole triangles and cannot "
+                    "look up their opacity: use hard, pcf or pcss")
+        return None
+
+
+class _Fused(_TreeFamily, ShadowMapTechnique):
+    """The fused techniques: ``hard``'s map, the edge classifier and the tree at edge points."""
+
+    def fused(self, frame, light, view, values, ctx):
+        """The fused hard visibility (§1.3) and its parts."""
+        rec = receiver(frame, view, ctx.bias)
+        h0, edge = edge_classify(view, rec, ctx.bias)
+        tv, visits, tree = tree_visibility(frame, light, values, edge)
+        vis = dr.select(edge, tv, h0)
+        return rec, vis, edge, visits, tree
+
+    def light_stats(self, frame, light, values, ctx, result):
+        act = result.active.numpy() if result.active is not None else frame.gbuffer.valid.numpy()
+        edge = result.aovs["edge"].numpy() > 0.5
+        nv = result.aovs["nodes_visited"].numpy()
+        return {"edge_fraction": Pooled(float((edge & act).sum()), int(act.sum())),
+                "nodes_per_query": Pooled(float(nv[edge].sum()), int(edge.sum()))}
+
+
+def _point_only(name, spec):
+    for l in spec.lights:
+        if l.kind not in POINT_KINDS:
+            return (f"{name}: light {l.name!r} is a {l.kind} (area) light; {name} gives pixel-exact hard shadows, "
+                    "which exist only for lights with one point of emission (point, spot, directional): use "
+                    "sm_dpsv_soft (tree and map of the light's centre, penumbra from its size) or pcss")
+    return None
+
+
+@register
+class DPSV(_TreeFamily, Technique):
+    """Visibility from the TOP tree alone (Algorithm 2 at every point)."""
+
+    name = "dpsv"
+    title = "Deep partitioned shadow volumes (TOP tree)"
+    summary = "exact point-light visibility from the TOP tree of the scene's triangles (Algorithm 2, per-point stack)"
+    params = TREE_PARAMS
+
+    def unsupported(self, spec):
+        return super().unsupported(spec) or _point_only(self.name, spec)
+
+    def prepare(self, frame, values, ctx):
+        frame.require_mitsuba_geometry()
+
+    def render_light(self, frame, light, values, ctx):
+        gb = frame.gbuffer
+        vis, visits, tree = tree_visibility(frame, light, values, gb.valid)
+        return LightResult(vis, {"nodes_visited": mi.Float(visits)}, active=gb.valid, stats=_tree_stats(tree))
+
+    def light_stats(self, frame, light, values, ctx, result):
+        act = result.active.numpy()
+        nv = result.aovs["nodes_visited"].numpy()
+        return {"nodes_per_query": Pooled(float(nv[act].sum()), int(act.sum()))}
+
+
+@register
+class FusedDPSV(_Fused):
+    """Shadow map everywhere but at shadow-edge points, which query the TOP tree (§1.3)."""
+
+    name = "sm_dpsv"
+    title = "Shadow map + DPSV at shadow edges (fused hard)"
+    summary = ("hard's biased shadow map; points whose depth test changes one texel away query the TOP tree, "
+               "so edges are exact")
+    params = TREE_PARAMS + BIAS_PARAMS
+
+    def unsupported(self, spec):
+        return super().unsupported(spec) or _point_only(self.name, spec)
+
+    def evaluate(self, frame, light, view, values, ctx):
+        rec, vis, edge, visits, tree = self.fused(frame, light, view, values, ctx)
+        return LightResult(vis, {"edge": dr.select(edge, 1.0, 0.0), "nodes_visited": mi.Float(visits),
+                                 "texel": rec["texel"]}, active=rec["active"],
+                           stats={**map_stats(view), **_tree_stats(tree)}, maps=[map_entry(view)])
+
+
+def _search_grid(view, rec, g, bias, w_search, spacing, n_max: int):
+    """Sparse blocker search: (count, Σ z) of the shadowed taps of an n×n grid of spacing
+    max(``spacing``, w_search/n_max) texels centred on the point (n = the taps that fit in w_search)."""
+    step = dr.maximum(spacing, w_search / n_max)
+    n = mi.UInt32(dr.clip(dr.floor(w_search / step) + 1.0, 1.0, float(n_max)))
+    n = dr.select(rec["active"], n, 0)
+    half = (mi.Float(n) - 1.0) * 0.5
+    u, v, face = rec["u"], rec["v"], rec["face"]
+
+    def body(k, cnt, zs):
+        j, i = k % dr.maximum(n, 1), k // dr.maximum(n, 1)
+        du, dv = (mi.Float(j) - half) * step, (mi.Float(i) - half) * step
+        ix, iy = texel_index(u + du), texel_index(v + dv)
+        dt = rec["dt"] if g is None else rec["dt"] + g[0] * du + g[1] * dv
+        Db, empty, _ = stored_depth(view, face, ix, iy, bias)
+        hit = ~empty & (Db < dt)
+        z = view.fetch("z", face, ix, iy)
+        return k + 1, cnt + dr.select(hit, 1.0, 0.0), zs + dr.select(hit, z, 0.0)
+
+    m = dr.width(u)
+    _, cnt, zs = dr.while_loop((dr.zeros(mi.UInt32, m), dr.zeros(mi.Float, m), dr.zeros(mi.Float, m)),
+                               lambda k, c, z: k < n * n, body, labels=("k", "count", "zsum"),
+                               label="sm_dpsv_soft_search", max_iterations=n_max * n_max)
+    return cnt, zs
+
+
+def _to_light(light, p):
+    """Unit direction from ``p`` to the light's centre (a directional light: −its direction)."""
+    if light.kind == "directional":
+        return mi.Vector3f(*[-float(x) for x in light_forward(light)])
+    return dr.normalize(mi.Point3f(*[float(x) for x in light.position]) - p)
+
+
+def _filter_visibility(screen, vis_map, f, w_pen, reject, px, py, nt: int, run):
+    """Box filter of the screen-space visibility map ``vis_map`` over the light-facing square of
+    full width ``w_pen`` (world units) at each receiver: tap (a, b)·w_pen of the square
+    perpendicular to the light direction ``f`` is slid along ``f`` onto the receiver's tangent
+    plane, projected to the screen and read there (nearest pixel). A tap off any surface, or whose
+    surface lies farther than ``reject`` from the tangent plane, is rejected."""
+    p, nrm = screen.position, screen.normal
+    side = dr.select(dr.abs(f.y) < 0.9, mi.Vector3f(0, 1, 0), mi.Vector3f(1, 0, 0))
+    r = dr.normalize(dr.cross(side, f))
+    u = dr.cross(f, r)
+    nf = dr.dot(nrm, f)
+    nf = dr.select(nf < 0.0, dr.minimum(nf, -0.2), dr.maximum(nf, 0.2))
+
+    def body(k, acc, wsum):
+        o = (r * dr.gather(mi.Float, px, k) + u * dr.gather(mi.Float, py, k)) * w_pen
+        q = p + o - f * (dr.dot(nrm, o) / nf)
+        sx, sy, _ = screen.project(q)
+        idx = screen.index(mi.Int32(dr.floor(sx)), mi.Int32(dr.floor(sy)))
+        qs = dr.gather(mi.Point3f, p, idx)
+        ok = dr.gather(mi.Bool, screen.valid, idx) & (dr.abs(dr.dot(nrm, qs - p)) <= reject)
+        return k + 1, acc + dr.select(ok, dr.gather(mi.Float, vis_map, idx), 0.0), wsum + dr.select(ok, 1.0, 0.0)
+
+    m = dr.width(vis_map)
+    _, acc, wsum = dr.while_loop((dr.zeros(mi.UInt32, m), dr.zeros(mi.Float, m), dr.zeros(mi.Float, m)),
+                                 lambda k, a, w: run & (k < nt), body, labels=("k", "acc", "wsum"),
+                                 label="sm_dpsv_soft_filter", max_iterations=nt)
+    return dr.select(wsum > 0.0, acc / dr.maximum(wsum, 1.0), vis_map)
+
+
+@register
+class FusedDPSVSoft(_Fused):
+    """Soft shadows: PCSS-style sparse blocker search, then a world-sized filter of the fused hard
+    visibility map (§1.4)."""
+
+    name = "sm_dpsv_soft"
+    title = "Shadow map + DPSV, filtered visibility map (soft)"
+    summary = ("fused hard visibility (sm_dpsv) stored per shading point, penumbra from a sparse blocker search, "
+               "filtered in screen space with a kernel of fixed world size")
+    params = SOFT_PARAMS + TREE_PARAMS + BIAS_PARAMS
+
+    def light_size(self, light, values):
+        w, val = scaled_size(values["light_scale"], scene_light_size(light))
+        return w, val
+
+    def evaluate(self, frame, light, view, values, ctx):
+        rec, hard_vis, edge, visits, tree = self.fused(frame, light, view, values, ctx)
+        dr.eval(hard_vis)  # the visibility map: a stage boundary, read by the filter at other pixels
+        f0 = view.proj.faces[0]
+        N, near, far = view.res, f0.near, f0.far
+        w_light, w_val = self.light_size(light, values)
+        zr = rec["z"]
+        for name in ("depth", "slope", "z"):
+            view.dr(name)
+        g = receiver_plane_gradient(view, rec, frame.gbuffer.ng)
+        if f0.ortho:
+            tan = dr.tan(w_light)
+            texel_world = 2.0 * f0.scale / N
+            w_search = dr.maximum(zr - near, 0.0) * tan * (1.0 / texel_world)
+        else:
+            zs = dr.maximum(zr, near)
+            w_search = (zs - near) / zs * w_light * (N / (2.0 * near * f0.scale))
+        if values["interval_mode"] == "constant":
+            spacing = dr.opaque(mi.Float, float(values["interval"])) + 0.0 * zr
+        else:
+            spacing = dr.opaque(mi.Float, float(values["interval_k"])) * zr / float(far)
+        cnt, zsum = _search_grid(view, rec, g, ctx.bias, w_search, dr.maximum(spacing, 1e-3),
+                                 int(values["search_taps"]))
+        found = rec["active"] & (cnt > 0.0)
+        z_avg = dr.select(found, zsum / dr.maximum(cnt, 1e-20), zr)
+        if f0.ortho:
+            w_pen = dr.maximum(zr - z_avg, 0.0) * tan
+        else:
+            w_pen = dr.maximum(zr - z_avg, 0.0) / dr.maximum(z_avg, 1e-6) * w_light
+        screen = frame.screen
+        pixel_world = 2.0 * screen.depth * frame.camera.tan_y / screen.height
+        w_px = w_pen / dr.maximum(pixel_world, 1e-12)
+        run = found & (w_px >= 1.0)
+        nt = int(values["filter_samples"])
+        px, py = _pattern_arrays(pcf_pattern(nt))
+        reject = dr.opaque(mi.Float, float(values["depth_reject"])) * w_pen
+        vis = _filter_visibility(screen, hard_vis, _to_light(light, frame.gbuffer.p), w_pen, reject, px, py, nt, run)
+        aovs = {"edge": dr.select(edge, 1.0, 0.0), "nodes_visited": mi.Float(visits), "texel": rec["texel"],
+                "penumbra_width": dr.select(found, w_pen, 0.0), "filter_pixels": dr.select(run, w_px, 0.0),
+                "blocker_depth": dr.select(found, z_avg, 0.0)}
+        return LightResult(vis, aovs, active=rec["active"],
+                           stats={**map_stats(view), **_tree_stats(tree), "light_size": w_val},
+                           maps=[map_entry(view)])
+
+
+__doc__ += ("\n\nParameters of ``sm_dpsv_soft`` (generated from the declaration; ``dpsv`` has the tree's, "
+            "``sm_dpsv`` the tree's and ``hard``'s):\n\n" + param_table_markdown(FusedDPSVSoft))
