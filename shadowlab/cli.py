@@ -327,8 +327,8 @@ def gate(gatefile: str = typer.Argument(..., help="Gate file (TOML), e.g. refere
 @app.command()
 def bench(out: str = typer.Option("reports/bench", "--out", "-o"),
           quick: bool = typer.Option(False, "--quick", help="Small sizes (a smoke run, not for figures)."),
-          only: Optional[str] = typer.Option(None, "--only", help="Run one part: sdf (SDF soft shadows, sdf.md), cascades (cascaded shadow maps, cascades.md) "
-                                "or virtual (virtual shadow maps, virtual.md)."),
+          only: Optional[str] = typer.Option(None, "--only", help="Run one part: sdf (SDF soft shadows, sdf.md), cascades (cascaded shadow maps, cascades.md), "
+                                "virtual (virtual shadow maps, virtual.md) or dpsv (shadow maps fused with deep partitioned shadow volumes, dpsv.md)."),
           variant: Optional[str] = VariantOpt):
     """Measure ground-truth throughput and technique compile / warm run times."""
     _init(variant)

@@ -5,7 +5,7 @@
 The bench section is copied from reports/bench/bench.md (and sdf.md, cascades.md and cascades-cuda.md, a GPU run of the cascades part, after it) when that file exists;
 the virtual shadow maps' section (``bench-virtual``) from reports/bench/virtual.md and virtual-cuda.md
 (``shadowlab bench --only virtual`` on the CPU and on a GPU) when either exists, so that part can be
-measured and regenerated alone. A part's plot stays beside it in reports/: the README keeps its tables.
+measured and regenerated alone; the DPSV family's (``bench-dpsv``) likewise from dpsv.md. A part's plot stays beside it in reports/: the README keeps its tables.
 """
 
 from __future__ import annotations
@@ -50,10 +50,15 @@ def bench_section() -> str | None:
     return _demote(text)
 
 
-def bench_virtual_section() -> str | None:
-    parts = [ROOT / "reports" / "bench" / n for n in ("virtual.md", "virtual-cuda.md")]
+def bench_part_section(part: str) -> str | None:
+    """A bench part's own README section: reports/bench/PART.md then PART-cuda.md, where they exist."""
+    parts = [ROOT / "reports" / "bench" / n for n in (f"{part}.md", f"{part}-cuda.md")]
     parts = [_part(f) for f in parts if f.exists()]
     return _demote("\n\n".join(parts)) if parts else None
+
+
+#: bench parts with a README section of their own (``<!-- bench-PART:begin -->``)
+OWN_SECTIONS = ("virtual", "dpsv")
 
 
 def _part(f: Path) -> str:
@@ -85,7 +90,8 @@ def main(argv=None) -> int:
     if "--check" in argv:
         return 0 if render(old, sections) == old else 1
     sections["bench"] = bench_section()
-    sections["bench-virtual"] = bench_virtual_section()
+    for part in OWN_SECTIONS:
+        sections[f"bench-{part}"] = bench_part_section(part)
     new = render(old, sections)
     if new != old:
         path.write_text(new)

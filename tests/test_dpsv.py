@@ -100,9 +100,9 @@ def test_one_triangle_planes_and_its_shadow_volume(mitsuba_backend):
     c = V[0].mean(0)
     below = light[:3] + 2.0 * (c - light[:3])
     pts = np.array([below, below + [3.0, 0, 0], c + [0, 0.5, 0]], np.float32)
-    vis, visits = query(tree, mi.Point3f(*pts.T))
+    vis, visits, deepest = query(tree, mi.Point3f(*pts.T))
     assert list(vis.numpy()) == [0.0, 1.0, 1.0]
-    assert visits.numpy()[0] == 4
+    assert visits.numpy()[0] == 4 and deepest.numpy()[0] == 4
 
 
 def test_directional_planes_are_parallel_to_the_light(mitsuba_backend):
@@ -131,6 +131,8 @@ def test_dpsv_equals_exact_visibility(mesh_frame):
     assert len(bad) <= 1e-4 * valid.sum(), (kind, len(bad), valid.sum())
     assert 0.02 < 1.0 - v[valid].mean() < 0.9, "the scene must have shadows to test"
     assert r.stats["tree_triangles"]["L"] > 150 and r.stats["nodes_per_query"]["L"] > 1
+    dv = r.aovs["L.depth_visited"]
+    assert 4 <= dv.max() <= r.stats["tree_depth"]["L"] and dv.max() <= r.aovs["L.nodes_visited"].max()
 
 
 def test_fused_equals_exact_except_the_classifiers_misses(mesh_frame):
@@ -172,9 +174,9 @@ def test_insertion_order_does_not_change_the_visibility(mesh_frame):
     light = frame.top_tree("L").light + np.concatenate([frame.top_tree("L").origin * frame.top_tree("L").light[3], [0]])
     rng = np.random.default_rng(7)
     results, sizes = [], set()
-    for order in ("light", "scene", rng.permutation(len(V)), rng.permutation(len(V))):
+    for order in ("random", "light", "scene", rng.permutation(len(V))):
         tree = build_top_tree(V, light, order=order, origin=frame.top_tree("L").origin)
-        vis, _ = query(tree, offset_point(tree, frame.gbuffer.p, frame.gbuffer.ng), frame.gbuffer.valid)
+        vis, _, _ = query(tree, offset_point(tree, frame.gbuffer.p, frame.gbuffer.ng), frame.gbuffer.valid)
         dr.eval(vis)
         results.append(vis.numpy())
         sizes.add((tree.nodes, tree.depth))

@@ -16,7 +16,9 @@ Measured (never asserted in tests):
   value (0 when parameters are opaque) and kernel-cache hits;
 * parameter fitting (``shadowlab.bench.fit``): pcss.light_scale by Adam vs the grid-search optimum
   and the grid of equal final loss;
-* virtual shadow maps (``shadowlab.bench.virtual``, [Giegl 2007]): ``virtual.json`` / ``virtual.md``.
+* virtual shadow maps (``shadowlab.bench.virtual``, [Giegl 2007]): ``virtual.json`` / ``virtual.md``;
+* shadow maps fused with deep partitioned shadow volumes (``shadowlab.bench.dpsv``, [Wang 2022]):
+  ``dpsv.json`` / ``dpsv.md``.
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from ..render.shading import sample_light
 from ..scene import load
 from ..techniques import base
 from .cascades import run as cascades_bench
+from .dpsv import run as dpsv_bench
 from .fit import markdown as fit_markdown
 from .fit import measure as bench_fit
 from .sdf import run as sdf_bench
@@ -266,11 +269,14 @@ def _markdown(res: dict) -> str:
     if res.get("virtual"):
         lines += ["", f"Virtual shadow maps ([Giegl 2007]): see `{Path(res['virtual']).name}` "
                       "(`shadowlab bench --only virtual`)."]
+    if res.get("dpsv"):
+        lines += ["", f"Shadow maps fused with deep partitioned shadow volumes ([Wang 2022]): see "
+                      f"`{Path(res['dpsv']).name}` (`shadowlab bench --only dpsv`)."]
     return "\n".join(lines) + "\n"
 
 
 #: the parts ``--only`` runs alone
-ONLY = ("sdf", "cascades", "virtual")
+ONLY = ("sdf", "cascades", "virtual", "dpsv")
 
 
 def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
@@ -278,7 +284,8 @@ def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
     ``only="cascades"``: just :mod:`shadowlab.bench.cascades` (``out/cascades.json``, ``out/cascades.md``);
     ``only="sdf"``: just the SDF soft-shadow bench (:mod:`shadowlab.bench.sdf`: ``out/sdf.json``,
     ``out/sdf.md``); ``only="virtual"``: just :mod:`shadowlab.bench.virtual` (``out/virtual.json``,
-    ``out/virtual.md``, ``out/virtual.png``); the full run writes them all."""
+    ``out/virtual.md``, ``out/virtual.png``); ``only="dpsv"``: just :mod:`shadowlab.bench.dpsv`
+    (``out/dpsv.json``, ``out/dpsv.md``); the full run writes them all."""
     if only is not None and only not in ONLY:
         raise InputError(f"--only {only!r}: expected one of {', '.join(ONLY)} (or no --only for every benchmark)")
     if only == "sdf":
@@ -287,6 +294,8 @@ def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
         return cascades_bench(Path(out), quick=quick)
     if only == "virtual":
         return virtual_bench(Path(out), quick=quick)
+    if only == "dpsv":
+        return dpsv_bench(Path(out), quick=quick)
     backend.init()
     res = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": backend.machine_info(),
            "quick": quick}
@@ -299,6 +308,7 @@ def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
     res["sdf"] = str(sdf_bench(Path(out), quick=quick))  # [Bán 2019, ch. 6]: written to sdf.json / sdf.md
     res["cascades"] = str(cascades_bench(Path(out), quick=quick))  # [Buljan 2020, ch. 4]: cascades.json / .md
     res["virtual"] = str(virtual_bench(Path(out), quick=quick))  # [Giegl 2007]: virtual.json / .md / .png
+    res["dpsv"] = str(dpsv_bench(Path(out), quick=quick))  # [Wang 2022]: dpsv.json / dpsv.md
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "bench.json", res)

@@ -118,7 +118,7 @@ class FrameContext:
             self._cache[key] = V
         return self._cache[key]
 
-    def top_tree(self, light_name: str, segments: int = 64, order: str = "light") -> TopTree:
+    def top_tree(self, light_name: str, segments: int = 64, order: str = "random") -> TopTree:
         """The TOP tree of the light's centre (a point light's position, or a directional light at
         infinity) over :meth:`triangles`, built once per (light, tessellation, insertion order)."""
         key = ("top_tree", light_name, int(segments), order)

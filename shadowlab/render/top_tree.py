@@ -26,8 +26,17 @@ the same round, the first in insertion order takes it and the others descend int
 the next round. Every triangle that reaches a link reaches it in the round equal to the link's
 depth, so the tree is the one sequential insertion in that order builds.
 
-Insertion order: nearest to the light first by default (``light``), or as given (``scene``).
-The visibility does not depend on the order; the size and depth of the tree do.
+Insertion order (``order``):
+
+* ``random`` (the default): a fixed pseudo-random permutation. As with keys inserted into a binary
+  search tree, a spatially coherent order builds a deep, list-like tree whose queries visit many
+  nodes, and a random one a shallow tree.
+* ``light``: nearest to the light first. It drops more triangles wholly in shadow, but on a
+  heightfield it is a sweep across the scene.
+* ``scene``: as given, usually a sweep as well.
+
+The visibility does not depend on the order; the size and depth of the tree, and the nodes a query
+visits, do (``shadowlab bench --only dpsv``).
 
 A triangle's side of a plane is taken with a tolerance ε_b = 1e-9·R (R the largest |vertex|
 about the tree's origin). Neighbours sharing an edge therefore see that edge's vertices as on
@@ -65,7 +74,9 @@ __all__ = ["TopTree", "build_top_tree", "triangle_planes", "query", "RAY_EPSILON
 #: (times 1 + the largest coordinate) along the normal.
 RAY_EPSILON = 1500.0 * 2.0 ** -24
 #: insertion orders of :func:`build_top_tree`
-ORDERS = ("light", "scene")
+ORDERS = ("random", "light", "scene")
+#: seed of the ``random`` insertion order (fixed: the tree is part of the technique's definition)
+ORDER_SEED = 0x70B
 _LEAF = -1
 
 
@@ -73,13 +84,15 @@ _LEAF = -1
 class TopTree:
     """A built TOP tree. ``planes[k]`` = (n, d) of node k about ``origin`` (world = origin + x);
     ``cap[k]``: a capping plane; ``child[k]`` = (positive, intersecting, negative) node indices,
-    −1 for an empty leaf. ``depth``: most nodes on a root-to-leaf path. Counts: ``triangles``
+    −1 for an empty leaf; ``level[k]``: node k's depth (the root is 1). ``depth``: most nodes on a
+    root-to-leaf path. Counts: ``triangles``
     (inserted), ``dropped`` (wholly in another's shadow), ``degenerate`` (no area, or the light
     in their plane: no shadow volume)."""
 
     planes: np.ndarray
     cap: np.ndarray
     child: np.ndarray
+    level: np.ndarray
     origin: np.ndarray
     light: np.ndarray
     depth: int
@@ -105,7 +118,7 @@ class TopTree:
             self._dr = {"a": mi.Float(pl[:, 0]), "b": mi.Float(pl[:, 1]), "c": mi.Float(pl[:, 2]),
                         "d": mi.Float(pl[:, 3]), "cap": mi.Bool(self.cap),
                         "p": mi.Int32(self.child[:, 0]), "i": mi.Int32(self.child[:, 1]),
-                        "n": mi.Int32(self.child[:, 2])}
+                        "n": mi.Int32(self.child[:, 2]), "level": mi.UInt32(self.level)}
             dr.eval(*self._dr.values())
         return self._dr
 
@@ -151,6 +164,8 @@ def _insertion_order(V, light, order):
         return np.asarray(order, np.int64)
     if order == "scene":
         return np.arange(len(V))
+    if order == "random":
+        return np.random.default_rng(ORDER_SEED).permutation(len(V))
     l, w = light[:3], light[3]
     if w:
         key = np.linalg.norm(V - l, axis=-1).min(1)
@@ -159,10 +174,11 @@ def _insertion_order(V, light, order):
     return np.argsort(key, kind="stable")
 
 
-def build_top_tree(V: np.ndarray, light, *, origin=None, order="light") -> TopTree:
+def build_top_tree(V: np.ndarray, light, *, origin=None, order="random") -> TopTree:
     """Algorithm 1 over the triangles ``V`` (T×3×3 world-space vertices) for ``light``: a point
-    (x, y, z, 1) or a direction toward a light at infinity (x, y, z, 0). ``order``: ``light``
-    (nearest first), ``scene`` (as given) or an array permutation of the triangles."""
+    (x, y, z, 1) or a direction toward a light at infinity (x, y, z, 0). ``order``: ``random``
+    (a fixed permutation), ``light`` (nearest first), ``scene`` (as given) or an array
+    permutation of the triangles."""
     t0 = time.perf_counter()
     light = np.asarray(light, np.float64)
     V = np.asarray(V, np.float64)
@@ -225,7 +241,7 @@ def build_top_tree(V: np.ndarray, light, *, origin=None, order="light") -> TopTr
             dropped += int(drop.sum())
             pend, node = pend[~done], node[~done]
     return TopTree(planes=P[:used].copy(), cap=is_cap[:used].copy(), child=child[:used].astype(np.int32),
-                   origin=origin, light=lo, depth=int(depth[:used].max(initial=0)), triangles=used // 4,
+                   level=depth[:used].astype(np.uint32), origin=origin, light=lo, depth=int(depth[:used].max(initial=0)), triangles=used // 4,
                    dropped=dropped, degenerate=int(bad.sum()), rounds=rounds, seconds=time.perf_counter() - t0)
 
 
@@ -252,18 +268,19 @@ def offset_point(tree: TopTree, p, ng):
 def query(tree: TopTree, x, active=True):
     """Algorithm 2 at points ``x`` (Dr.Jit Point3f about ``tree.origin``, e.g. from
     :func:`offset_point`) where ``active``: (visibility Float, 1 lit / 0 shadowed; nodes visited
-    UInt32). Inactive points and an empty tree give 1 and 0 visits."""
+    UInt32; the deepest level visited, UInt32). Inactive points and an empty tree give 1, 0, 0."""
     m = dr.width(x)
     if tree.nodes == 0:
-        return dr.full(mi.Float, 1.0, m), dr.zeros(mi.UInt32, m)
+        return dr.full(mi.Float, 1.0, m), dr.zeros(mi.UInt32, m), dr.zeros(mi.UInt32, m)
     A = tree.arrays()
     size = stack_size(tree)
     stack = dr.alloc_local(mi.Int32, size, dr.zeros(mi.Int32, m))
     sp = dr.select(active, dr.full(mi.UInt32, 1, m), 0)  # width m: loop state must not broadcast
     vis = dr.full(mi.Float, 1.0, m)
     visits = dr.zeros(mi.UInt32, m)
+    deepest = dr.zeros(mi.UInt32, m)
 
-    def body(sp, vis, visits, stack):
+    def body(sp, vis, visits, deepest, stack):
         sp = dr.maximum(sp, 1) - 1  # lanes already done still run the body in a packet: keep indices in range
         n = stack.read(sp)
         val = (dr.gather(mi.Float, A["a"], n) * x.x + dr.gather(mi.Float, A["b"], n) * x.y
@@ -280,8 +297,10 @@ def query(tree: TopTree, x, active=True):
         stack.write(side, sp, push_s)
         sp = dr.select(push_s, sp + 1, sp)
         sp = dr.select(shadow, 0, sp)
-        return sp, vis, visits + 1, stack
+        deepest = dr.maximum(deepest, dr.gather(mi.UInt32, A["level"], n))
+        return sp, vis, visits + 1, deepest, stack
 
-    sp, vis, visits, stack = dr.while_loop((sp, vis, visits, stack), lambda sp, vis, visits, stack: sp > 0, body,
-                                           labels=("sp", "vis", "visits", "stack"), label="top_tree_query")
-    return vis, visits
+    _, vis, visits, deepest, _ = dr.while_loop((sp, vis, visits, deepest, stack), lambda sp, *_: sp > 0, body,
+                                               labels=("sp", "vis", "visits", "deepest", "stack"),
+                                               label="top_tree_query")
+    return vis, visits, deepest

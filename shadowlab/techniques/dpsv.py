@@ -58,7 +58,7 @@ tree has no texture lookups. SDF-only scenes have no triangles and are refused t
 Stats: the tree's ``nodes``, ``depth``, ``triangles`` and ``build_seconds`` per light;
 ``nodes_per_query`` (mean nodes visited per tree query); for the fused techniques
 ``edge_fraction`` (share of the active points that query the tree). AOVs: ``nodes_visited``,
-``edge`` (fused), ``penumbra_width``, ``filter_pixels``, ``blocker_depth`` (soft).
+``depth_visited`` (the deepest tree level a point's query reached), ``edge`` (fused), ``penumbra_width``, ``filter_pixels``, ``blocker_depth`` (soft).
 """
 
 from __future__ import annotations
@@ -82,9 +82,10 @@ TREE_PARAMS = (
     Param("segments", 64, "int", 3, 1024, "segments", False, source="[Wang 2022, §1.2]",
           doc="tessellation of curved primitives (sphere, disk, cylinder) into the tree's triangles; meshes, "
               "cubes and rectangles are exact"),
-    Param("order", "light", "choice", choices=ORDERS, source="[Gerhards 2015]",
-          doc="insertion order of Algorithm 1: light = nearest to the light first, scene = as the scene lists "
-              "them; the visibility does not depend on it, the tree's size and depth do"),
+    Param("order", "random", "choice", choices=ORDERS, source="[Gerhards 2015]",
+          doc="insertion order of Algorithm 1: random = a fixed permutation (shallow trees), light = nearest to "
+              "the light first, scene = as the scene lists them; the visibility does not depend on it, the "
+              "tree's depth and the nodes a query visits do"),
 )
 
 SOFT_PARAMS = (
@@ -113,12 +114,13 @@ def _tree_stats(tree) -> dict:
 
 
 def tree_visibility(frame, light, values, active):
-    """(visibility, nodes visited, tree) of ``light`` at the G-buffer points where ``active``."""
+    """(visibility, nodes visited, deepest level visited, tree) of ``light`` at the G-buffer points
+    where ``active``."""
     tree = frame.top_tree(light.name, int(values["segments"]), values["order"])
     gb = frame.gbuffer
     x = offset_point(tree, gb.p, gb.ng)
-    vis, visits = query(tree, x, active)
-    return vis, visits, tree
+    vis, visits, deepest = query(tree, x, active)
+    return vis, visits, deepest, tree
 
 
 def edge_classify(view, rec, bias):
@@ -157,9 +159,9 @@ class _Fused(_TreeFamily, ShadowMapTechnique):
         """The fused hard visibility (§1.3) and its parts."""
         rec = receiver(frame, view, ctx.bias)
         h0, edge = edge_classify(view, rec, ctx.bias)
-        tv, visits, tree = tree_visibility(frame, light, values, edge)
+        tv, visits, deepest, tree = tree_visibility(frame, light, values, edge)
         vis = dr.select(edge, tv, h0)
-        return rec, vis, edge, visits, tree
+        return rec, vis, edge, {"nodes_visited": mi.Float(visits), "depth_visited": mi.Float(deepest)}, tree
 
     def light_stats(self, frame, light, values, ctx, result):
         act = result.active.numpy() if result.active is not None else frame.gbuffer.valid.numpy()
@@ -195,8 +197,9 @@ class DPSV(_TreeFamily, Technique):
 
     def render_light(self, frame, light, values, ctx):
         gb = frame.gbuffer
-        vis, visits, tree = tree_visibility(frame, light, values, gb.valid)
-        return LightResult(vis, {"nodes_visited": mi.Float(visits)}, active=gb.valid, stats=_tree_stats(tree))
+        vis, visits, deepest, tree = tree_visibility(frame, light, values, gb.valid)
+        return LightResult(vis, {"nodes_visited": mi.Float(visits), "depth_visited": mi.Float(deepest)},
+                           active=gb.valid, stats=_tree_stats(tree))
 
     def light_stats(self, frame, light, values, ctx, result):
         act = result.active.numpy()
@@ -218,9 +221,9 @@ class FusedDPSV(_Fused):
         return super().unsupported(spec) or _point_only(self.name, spec)
 
     def evaluate(self, frame, light, view, values, ctx):
-        rec, vis, edge, visits, tree = self.fused(frame, light, view, values, ctx)
-        return LightResult(vis, {"edge": dr.select(edge, 1.0, 0.0), "nodes_visited": mi.Float(visits),
-                                 "texel": rec["texel"]}, active=rec["active"],
+        rec, vis, edge, tree_aovs, tree = self.fused(frame, light, view, values, ctx)
+        return LightResult(vis, {"edge": dr.select(edge, 1.0, 0.0), **tree_aovs, "texel": rec["texel"]},
+                           active=rec["active"],
                            stats={**map_stats(view), **_tree_stats(tree)}, maps=[map_entry(view)])
 
 
@@ -302,7 +305,7 @@ class FusedDPSVSoft(_Fused):
         return w, val
 
     def evaluate(self, frame, light, view, values, ctx):
-        rec, hard_vis, edge, visits, tree = self.fused(frame, light, view, values, ctx)
+        rec, hard_vis, edge, tree_aovs, tree = self.fused(frame, light, view, values, ctx)
         dr.eval(hard_vis)  # the visibility map: a stage boundary, read by the filter at other pixels
         f0 = view.proj.faces[0]
         N, near, far = view.res, f0.near, f0.far
@@ -338,7 +341,7 @@ class FusedDPSVSoft(_Fused):
         px, py = _pattern_arrays(pcf_pattern(nt))
         reject = dr.opaque(mi.Float, float(values["depth_reject"])) * w_pen
         vis = _filter_visibility(screen, hard_vis, _to_light(light, frame.gbuffer.p), w_pen, reject, px, py, nt, run)
-        aovs = {"edge": dr.select(edge, 1.0, 0.0), "nodes_visited": mi.Float(visits), "texel": rec["texel"],
+        aovs = {"edge": dr.select(edge, 1.0, 0.0), **tree_aovs, "texel": rec["texel"],
                 "penumbra_width": dr.select(found, w_pen, 0.0), "filter_pixels": dr.select(run, w_px, 0.0),
                 "blocker_depth": dr.select(found, z_avg, 0.0)}
         return LightResult(vis, aovs, active=rec["active"],
