@@ -1,12 +1,13 @@
-# shadowlab: `make demo` and `make test` set up everything they need (venv, package, libLLVM).
+# shadowlab: `make demo` and `make test` set up everything they need (venv, package, libLLVM, Chromium).
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 LLVM_PKG ?= libllvm19
+CHROMIUM_PKG ?= chromium
 
-.PHONY: setup venv llvm demo test bench references docs clean
+.PHONY: setup venv llvm browser demo test bench references docs clean
 
-setup: venv llvm
+setup: venv llvm browser
 
 venv: $(VENV)/.installed
 
@@ -27,6 +28,22 @@ llvm: venv
 	else \
 		echo "error: no libLLVM >= 16 found. Run: sudo apt-get install $(LLVM_PKG)" \
 		     "(or set DRJIT_LIBLLVM_PATH to a libLLVM.so >= 16), then run make again." >&2; exit 3; \
+	fi
+
+# The report's browser test (tests/test_report_browser.py) loads a report in headless Chromium.
+# Installed like libLLVM (apt-get as root); without root only a warning: `make demo` does not need it,
+# and the test fails saying what to install.
+browser:
+	@if b=$$(command -v chromium || command -v chromium-browser || command -v google-chrome) || \
+	    [ -n "$$SHADOWLAB_CHROMIUM" ]; then \
+		echo "chromium: $${SHADOWLAB_CHROMIUM:-$$b}"; \
+	elif [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+		echo "installing $(CHROMIUM_PKG) for the report's browser test"; \
+		DEBIAN_FRONTEND=noninteractive apt-get install -y -q $(CHROMIUM_PKG) >/dev/null 2>&1 || \
+		{ apt-get update -q >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -q $(CHROMIUM_PKG) >/dev/null; }; \
+	else \
+		echo "warning: no Chromium found; tests/test_report_browser.py needs it. Run: sudo apt-get install" \
+		     "$(CHROMIUM_PKG) (or set SHADOWLAB_CHROMIUM to a Chromium binary)." >&2; \
 	fi
 
 demo: setup

@@ -22,8 +22,9 @@ import typer
 
 from . import backend
 from .bench import run as run_bench
-from .errors import INTERNAL_ERROR, GateFailure, Interrupted, ShadowlabError
+from .errors import INTERNAL_ERROR, GateFailure, InputError, Interrupted, ShadowlabError
 from .exchange.export import export_scene
+from .exchange.ingest import default_out
 from .exchange.ingest import ingest as run_ingest
 from .fit import Budget
 from .fit import fit as run_fit
@@ -181,7 +182,9 @@ def _compare(scene, techs, sets, out, resolution, variant, preset=None, force=Fa
 @app.command()
 def compare(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
             techniques_: Optional[str] = typer.Option(None, "--techniques", "-t", help="Comma-separated technique "
-                                                      "names (default: hard,pcf, or the preset's techniques)."),
+                                                      "names, or all (every technique that renders the scene; the "
+                                                      "others listed with the reason) (default: hard,pcf, or the "
+                                                      "preset's techniques)."),
             set_: List[str] = typer.Option([], "--set", help="TECHNIQUE.PARAM=VALUE, repeatable."),
             preset: Optional[str] = typer.Option(None, "--preset", help="Preset file (TOML/JSON, e.g. written by "
                                                  "`shadowlab fit`): {technique: {param: value}}; --set overrides it."),
@@ -197,23 +200,30 @@ def compare(scene: str = typer.Argument(..., help="Built-in scene name or path t
     out = out or f"reports/{Path(scene).stem}"
     pre = load_preset(preset) if preset else None
     techs = _split(techniques_) if techniques_ is not None else list(pre.values) if pre else ["hard", "pcf"]
+    if techs == ["all"]:
+        techs = _applicable(scene)
     _compare(scene, techs, set_, out, resolution, variant, pre, force, frame, frames)
+
+
+def _applicable(scene: str) -> list[str]:
+    """``-t all``: every technique that renders ``scene``; those that cannot are listed with the reason."""
+    spec = load_spec(resolve(scene))
+    skipped = {n: why for n in base.names() if (why := base.get(n).unsupported(spec))}
+    for n, why in skipped.items():
+        typer.echo(f"skipping {n}: {why}", err=True)
+    return [n for n in base.names() if n not in skipped]
 
 
 @app.command()
 def demo(out: str = typer.Option("reports/demo", "--out", "-o"), force: bool = ForceOpt,
          variant: Optional[str] = VariantOpt):
     """Compare every registered technique that renders the built-in `contact` scene and print the table."""
-    spec = load_spec(resolve("contact"))
-    skipped = {n: why for n in base.names() if (why := base.get(n).unsupported(spec))}
-    for n, why in skipped.items():
-        typer.echo(f"demo skips {n}: {why}", err=True)
-    _compare("contact", [n for n in base.names() if n not in skipped], [], out, None, variant, force=force)
+    _compare("contact", _applicable("contact"), [], out, None, variant, force=force)
 
 
 @app.command()
 def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
-        technique: Optional[str] = typer.Option(None, "--technique", "-t", help="The technique to fit."),
+        technique: Optional[str] = typer.Option(None, "--technique", "-t", help="The technique to fit (all: as --all)."),
         params: Optional[str] = typer.Option(None, "--params", "-p", help="Comma-separated parameters to fit "
                                              "(default: the differentiable ones; hard: biases; pcf: kernel, softness)."),
         method: str = typer.Option("auto", "--method", help="auto | adam | golden | grid (auto: Adam on the "
@@ -242,6 +252,8 @@ def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a 
         variant: Optional[str] = VariantOpt):
     """Fit technique parameters to the ground truth; write DIR/fit.json, index.html, summary.md, preset.toml."""
     _init(variant)
+    if technique == "all":              # -t all: every technique that applies (the others listed with the reason)
+        technique, all_ = None, True
     out = out or f"reports/fit/{Path(scene).stem}-{'all' if all_ else technique or 'fit'}"
     run = run_fit(scene, technique, params=params, method=method, loss=loss, all_techniques=all_, sets=set_,
                   preset=preset, ranges=range_, budget=Budget(steps, lr, evals, grid_points, rounds), out=out,
@@ -283,15 +295,23 @@ def ingest(scene: str = typer.Argument(..., help="Built-in scene name or path to
            resolution: Optional[str] = typer.Option(None, "--resolution", "-r", help="The reference's WxH "
                                                     "(default: the image's size)."),
            out: Optional[str] = typer.Option(None, "--out", "-o", help="Report directory (default "
-                                             "reports/ingest/SCENE)."),
+                                             "reports/ingest/SCENE-IMAGE, -2, -3, … when it exists: a new ingest "
+                                             "never replaces the previous one)."),
            gate: Optional[str] = typer.Option(None, "--gate", help="Gate file to run on the image (exit 1 on failure)."),
+           label: List[str] = typer.Option([], "--label", help="TEXT: the image's name in the report (default: its "
+                                           "file name); CHANNEL=TEXT: a channel's title; repeatable."),
            force: bool = ForceOpt,
            variant: Optional[str] = VariantOpt):
     """Compare an image rendered elsewhere with the stored ground truth; write a report."""
     _init(variant)
-    out = out or f"reports/ingest/{Path(scene).stem}"
+    out = out or str(default_out(scene, image))
+    names = [x for x in label if "=" not in x]
+    if len(names) > 1:
+        raise InputError(f"--label: one name for the image, got {', '.join(map(repr, names))}; title channels "
+                         "with CHANNEL=TEXT")
     run = run_ingest(scene, image, channels=channel, shaded=shaded, layer=layer, against=against,
-                     resolution=parse_resolution(resolution), out=Path(out), gate=gate, force=force)
+                     resolution=parse_resolution(resolution), out=Path(out), gate=gate, force=force,
+                     label=names[0] if names else None, labels=[x for x in label if "=" in x])
     typer.echo(summary_table(run))
     for light, d in next(iter(run["techniques"].values()))["per_light"].items():
         typer.echo(f"{light}: " + ", ".join(f"{k} {v:.4g}" for k, v in d.items()))

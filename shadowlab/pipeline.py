@@ -33,7 +33,8 @@ from .render.gbuffer import vec_numpy
 from .render.shading import compose
 from .report import build
 from .report.frames import build_frames
-from .report.images import cascade_colours, tile_colours
+from .report.images import cascade_colours, emitter_pixels, tile_colours
+from .report.lights import light_info
 from .report.outdir import claim_dir
 from .scene import load
 from .scene.spec import builtin_dir
@@ -305,6 +306,9 @@ def _compare_at(sc, scene, techniques, overrides, base, render_missing, progress
            "lights": [l.name for l in sc.lights], "techniques": {},
            "images": {"truth": {"shaded": truth.shaded, "vis": {n: lt.V for n, lt in truth.lights.items()}},
                       "techniques": {}}, "machine": backend.machine_info()}
+    run["light_info"] = light_info(sc.spec.lights)
+    if sc.kind == "mitsuba":   # an SDF G-buffer's shape ids index SDF primitives, not Mitsuba shapes
+        run["images"]["emitter"] = emitter_pixels(frame.gbuffer.shape_id, sc.light_shapes)
     if sc.frame is not None:
         run["frame"] = sc.frame
     if truth.mitsuba is not None:

@@ -367,3 +367,305 @@ def test_export_refuses_sdf_only_objects(tmp_path, mitsuba_backend):
     with pytest.raises(InputError, match=r"\[\[sdf\]\]"):
         export_scene(sdf_scenes[0], tmp_path / "sdf")
     assert not (tmp_path / "sdf").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# lights.json: the shadow camera and the depth bias of `hard`; portable, world-readable exports
+
+def _lightview_spec(tmp_path=None):
+    """tests/lightview_scene.py (spot, sun, sphere, rect) plus a point light; small maps in every
+    depth format."""
+    import copy
+    from lightview_scene import SCENE
+    from shadowlab.scene import parse
+    scene = copy.deepcopy(SCENE)
+    scene["lights"].append({"name": "pt", "kind": "point", "position": [0.2, 2.0, 0.9], "power": 50.0})
+    bits = {"spot": 16, "sun": 32, "bulb": 32, "panel": 24, "pt": 24}
+    for l in scene["lights"]:
+        l["shadow_map"], l["depth_bits"] = 48, bits[l["name"]]
+    return parse(scene, "lightview.toml")
+
+
+@pytest.fixture(scope="module")
+def shadow_export(tmp_path_factory, mitsuba_backend):
+    from shadowlab.exchange.export import export_scene
+    from shadowlab.render.frame import make_frame
+    from shadowlab.scene import build
+    spec = _lightview_spec()
+    out = tmp_path_factory.mktemp("shadow") / "lv"
+    export_scene(spec, out)
+    lights = {l["name"]: l for l in json.loads((out / "lights.json").read_text())["lights"]}
+    return make_frame(build(spec), u_strata=1), lights
+
+
+def _project(M, p):
+    c = np.concatenate([p, np.ones((len(p), 1))], 1) @ np.asarray(M, np.float64).T
+    return c[:, :3] / c[:, 3:]
+
+
+def test_shadow_camera_is_the_map_hard_samples(shadow_export):
+    """A world point projected with the exported matrices (Direct3D, OpenGL, Vulkan) lands where
+    LightView.lookup of hard's map puts it (u, v within 1e-3 texel) with its NDC depth (OpenGL:
+    (ndc.z + 1)/2); map size, format and planes are the light's."""
+    import mitsuba as mi
+    from shadowlab.techniques import base
+    from shadowlab.techniques.shadow_map import view_for
+    frame, lights = shadow_export
+    hard = base.get("hard").resolve({})
+    rng = np.random.default_rng(1)
+    lo, hi = np.array(frame.scene.bbox_min) - 0.3, np.array(frame.scene.bbox_max) + 0.3
+    box = rng.uniform(lo, hi, (4000, 3))
+    dirs = rng.normal(size=(3000, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    for spec in frame.scene.spec.lights:
+        cam = lights[spec.name]["shadow_camera"]
+        # points in the scene's box and around the light (every cube face gets some)
+        pts = np.concatenate([box, np.array(cam["faces"][0]["origin"]) + dirs * rng.uniform(0.3, 3.0, (3000, 1))])
+        view = view_for(frame, spec.name, hard)
+        N = view.res
+        assert cam["map_size"] == [48, 48] == [N, N] and cam["depth_format"]["bits"] == spec.depth_bits == view.bits
+        assert cam["faces_count"] == view.nfaces and cam["technique"] == "hard"
+        assert (cam["near"], cam["far"]) == (view.proj.faces[0].near, view.proj.faces[0].far)
+        rec = view.lookup(mi.Point3f(*[pts[:, k].astype(np.float32) for k in range(3)]))
+        face = np.asarray(rec["face"].numpy()) if view.nfaces > 1 else np.zeros(len(pts), int)
+        u, v, d = (np.asarray(rec[k].numpy(), np.float64) for k in ("u", "v", "d"))
+        inside = np.asarray(rec["inside"].numpy())
+        assert inside.sum() > 300, spec.name
+        for k, f in enumerate(cam["faces"]):
+            sel = inside & (face == k)
+            assert sel.sum() >= 20, (spec.name, k)
+            p = pts[sel]
+            d3d = _project(f["direct3d"]["world_to_clip"], p)
+            gl = _project(f["opengl"]["world_to_clip"], p)
+            vk = _project(f["vulkan"]["world_to_clip"], p)
+            for name, ndc, row in (("direct3d", d3d, (1 - d3d[:, 1]) / 2 * N), ("opengl", gl, (1 - gl[:, 1]) / 2 * N),
+                                   ("vulkan", vk, (vk[:, 1] + 1) / 2 * N)):
+                assert np.abs((ndc[:, 0] + 1) / 2 * N - u[sel]).max() < 1e-3, (spec.name, k, name)
+                assert np.abs(row - v[sel]).max() < 1e-3, (spec.name, k, name)
+            np.testing.assert_allclose(d3d[:, 2], d[sel], rtol=1e-5, atol=1e-6)
+            np.testing.assert_allclose(vk[:, 2], d[sel], rtol=1e-5, atol=1e-6)
+            np.testing.assert_allclose((gl[:, 2] + 1) / 2, d[sel], rtol=1e-5, atol=1e-6)
+            for api in ("direct3d", "opengl", "vulkan"):  # the products are what they claim
+                m = f[api]
+                assert np.allclose(np.array(m["view_to_clip"]) @ np.array(m["world_to_view"]), m["world_to_clip"])
+            # OpenGL view space looks down -z: a rotation; Direct3D's light space is left-handed
+            assert np.linalg.det(np.array(f["opengl"]["world_to_view"])[:3, :3]) == pytest.approx(1.0)
+            assert np.linalg.det(np.array(f["direct3d"]["world_to_view"])[:3, :3]) == pytest.approx(-1.0)
+
+
+@pytest.mark.parametrize("name", ["spot", "sun", "pt"])
+def test_rendering_with_the_exported_camera_gives_hards_depths(shadow_export, name):
+    """The surfaces the map's texel rays hit, projected with the exported Direct3D matrices, land on
+    those texel centres with the stored depth (one step of the depth format): rasterising the scene
+    with this camera writes shadowlab's map."""
+    import mitsuba as mi
+    from shadowlab.render.lightview import texel_rays
+    from shadowlab.techniques import base
+    from shadowlab.techniques.shadow_map import view_for
+    frame, lights = shadow_export
+    view = view_for(frame, name, base.get("hard").resolve({}))
+    cam = lights[name]["shadow_camera"]
+    N, F = view.res, view.nfaces
+    o, dirs = texel_rays(view.proj)
+    f0 = view.proj.faces[0]
+    o = o + dirs * (min(0.0, f0.near) if f0.ortho else 1e-5 * frame.scene.radius)  # as light_view starts them
+    si = frame.scene.mi_scene.ray_intersect(mi.Ray3f(mi.Point3f(*[o[:, k].astype(np.float32) for k in range(3)]),
+                                                     mi.Vector3f(*[dirs[:, k].astype(np.float32) for k in range(3)])))
+    hit = np.asarray(si.is_valid().numpy())
+    p = np.stack([np.asarray(c.numpy(), np.float64) for c in (si.p.x, si.p.y, si.p.z)], 1)
+    assert np.array_equal(hit, view.hit.ravel())
+    step = 1.0 / (2 ** view.bits - 1) if view.bits != 32 else 0.0
+    jj, ii = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
+    for k in range(F):
+        sl = slice(k * N * N, (k + 1) * N * N)
+        h = hit[sl]
+        ndc = _project(cam["faces"][k]["direct3d"]["world_to_clip"], p[sl][h])
+        assert np.abs((ndc[:, 0] + 1) / 2 * N - (ii.ravel()[h] + 0.5)).max() < 2e-3
+        assert np.abs((1 - ndc[:, 1]) / 2 * N - (jj.ravel()[h] + 0.5)).max() < 2e-3
+        # depth clamp: casters before the near plane are stored at 0 (shadow_camera.depth_clamp)
+        err = np.abs(np.clip(ndc[:, 2], 0, 1) - view.depth[k].ravel()[h])
+        # half a step of the format, plus the float32 hit points' round-off (largest near the near plane)
+        assert err.max() <= step * 0.5 + 3e-5 and np.median(err) <= step * 0.5 + 1e-6, (name, k)
+    assert "depth_clamp" in cam and "GL_DEPTH_CLAMP" in cam["depth_clamp"]
+
+
+def test_cube_faces_order_and_cubemap_matrices(shadow_export):
+    """Point and sphere lights: faces +X, -X, +Y, -Y, +Z, -Z, each looking down its axis; a point in
+    a face's frustum projects inside that face (and shadowlab's lookup picks that face); the cubemap
+    matrices put a direction at the (s, t) of the specs' face selection table, with the same depth,
+    and its texels relate to shadowlab's as ``same_texels`` says."""
+    import mitsuba as mi
+    from shadowlab.techniques import base
+    from shadowlab.techniques.shadow_map import view_for
+    frame, lights = shadow_export
+    order = ["+X", "-X", "+Y", "-Y", "+Z", "-Z"]
+    # the face selection table of the OpenGL / Vulkan specs: major axis -> (sc, tc) as components of d
+    table = {0: lambda d: (-d[2], -d[1]), 1: lambda d: (d[2], -d[1]), 2: lambda d: (d[0], d[2]),
+             3: lambda d: (d[0], -d[2]), 4: lambda d: (d[0], -d[1]), 5: lambda d: (-d[0], -d[1])}
+    rng = np.random.default_rng(3)
+    for name in ("pt", "bulb"):
+        cam = lights[name]["shadow_camera"]
+        view = view_for(frame, name, base.get("hard").resolve({}))
+        N = view.res
+        assert cam["cube_face_order"] == order and [f["name"] for f in cam["faces"]] == order
+        o = np.array(cam["faces"][0]["origin"])
+        for k, f in enumerate(cam["faces"]):
+            axis = np.zeros(3)
+            axis[k // 2] = 1.0 if k % 2 == 0 else -1.0
+            assert np.allclose(f["forward"], axis) and f["fov_deg"] == pytest.approx(90.0)
+            # points inside face k's frustum: along the axis, tilted by less than 45 degrees
+            t = rng.uniform(0.5, 2.0, 200)
+            off = rng.uniform(-0.9, 0.9, (200, 3))
+            off[:, k // 2] = 0.0
+            p = o + (axis + off) * t[:, None]
+            keep = (t > 1.2 * cam["near"] / 1.0)
+            p = p[keep]
+            for api in ("direct3d", "opengl", "vulkan"):
+                ndc = _project(f[api]["world_to_clip"], p)
+                assert (np.abs(ndc[:, :2]) < 1).all(), (name, k, api)
+                zlo = -1 if api == "opengl" else 0
+                assert ((ndc[:, 2] > zlo) & (ndc[:, 2] < 1)).all(), (name, k, api)
+            rec = view.lookup(mi.Point3f(*[p[:, c].astype(np.float32) for c in range(3)]))
+            assert (np.asarray(rec["face"].numpy()) == k).all()
+            # cube-map sampling: direction d = p - o; (s, t) from the table; the same depth
+            dvec = p - o
+            ma = np.abs(dvec[:, k // 2])
+            sc, tc = table[k](dvec.T)
+            s, tt = (sc / ma + 1) / 2, (tc / ma + 1) / 2
+            cm = f["cubemap"]
+            d3d, gl, vk = (_project(cm[a]["world_to_clip"], p) for a in ("direct3d", "opengl", "vulkan"))
+            np.testing.assert_allclose((gl[:, 0] + 1) / 2, s, atol=1e-9)
+            np.testing.assert_allclose((gl[:, 1] + 1) / 2, tt, atol=1e-9)       # OpenGL: window row 0 = t 0
+            np.testing.assert_allclose((d3d[:, 0] + 1) / 2, s, atol=1e-9)
+            np.testing.assert_allclose((1 - d3d[:, 1]) / 2, tt, atol=1e-9)      # Direct3D: row 0 at the top
+            np.testing.assert_allclose((vk[:, 0] + 1) / 2, s, atol=1e-9)
+            np.testing.assert_allclose((vk[:, 1] + 1) / 2, tt, atol=1e-9)       # Vulkan: y down
+            d = np.asarray(rec["d"].numpy(), np.float64)
+            np.testing.assert_allclose(d3d[:, 2], d, rtol=1e-5)
+            np.testing.assert_allclose(vk[:, 2], d, rtol=1e-5)
+            np.testing.assert_allclose((gl[:, 2] + 1) / 2, d, rtol=1e-5)
+            # same_texels: cube (column, row) from shadowlab's (u, v)
+            u, v = (np.asarray(rec[c].numpy(), np.float64) for c in ("u", "v"))
+            same = cm["same_texels"]
+            col = u if same["columns"] == "same" else N - u
+            row = v if same["rows"] == "same" else N - v
+            assert np.abs(col - s * N).max() < 1e-3 and np.abs(row - tt * N).max() < 1e-3, (name, k, same)
+            for api in ("direct3d", "opengl", "vulkan"):
+                m = cm[api]
+                assert np.allclose(np.array(m["view_to_clip"]) @ np.array(m["world_to_view"]), m["world_to_clip"])
+    assert lights["spot"]["shadow_camera"]["cube_face_order"] is None
+
+
+def test_depth_bias_in_lights_json_is_hards(shadow_export):
+    from shadowlab.exchange.bias import gl_polygon_offset, vk_depth_bias
+    from shadowlab.techniques import base
+    _, lights = shadow_export
+    hard = base.get("hard").resolve({})
+    for name, l in lights.items():
+        b = l["depth_bias"]
+        bits = l["depth_bits"]
+        assert b["technique"] == "hard" and b["depth_format"] == ("float32" if bits == 32 else f"unorm{bits}")
+        assert b["direct3d"]["DepthBias"] == hard["depth_bias"] == 16
+        assert b["direct3d"]["SlopeScaledDepthBias"] == hard["slope_scaled_depth_bias"] == 2.0
+        assert b["receiver"]["constant_bias"] == hard["constant_bias"]
+        for e in b["opengl"]:
+            want = gl_polygon_offset(16, 2.0, bits, r_gl=e.get("r_preset", "step"))
+            assert (e["factor"], e["units"], e["clamp"]) == tuple(want)
+        for e in b["vulkan"]:
+            want = vk_depth_bias(16, 2.0, bits, r_vk=e.get("r_preset", "step"))
+            assert (e["depthBiasConstantFactor"], e["depthBiasSlopeFactor"], e["depthBiasClamp"]) == tuple(want)
+    panel = {e["r_preset"]: e for e in lights["panel"]["depth_bias"]["opengl"]}  # 24-bit: the measured llvmpipe case
+    assert (panel["mesa-llvmpipe"]["factor"], panel["mesa-llvmpipe"]["units"]) == (2.0, 8.0)
+
+
+def test_export_is_portable_and_world_readable(tmp_path, mitsuba_backend):
+    """Under umask 077 every exported file is 644 and every directory 755; scene.xml names its
+    meshes (the scene's PLY and OBJ files, copied into meshes/source/) by relative paths that exist
+    in the export, which loads as the original scene after it moved and the originals are gone."""
+    import shutil
+    import stat
+    import xml.etree.ElementTree as ET
+    import mitsuba as mi
+    from shadowlab.exchange.export import export_scene
+    from shadowlab.scene import load
+    src = tmp_path / "user"
+    src.mkdir()
+    (src / "geo").mkdir()
+    V = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], "<f4")
+    F = [(0, 1, 2), (0, 3, 1), (0, 2, 3), (1, 3, 2)]
+    head = ("ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+            "property float z\nelement face 4\nproperty list uchar int vertex_indices\nend_header\n").encode()
+    import struct
+    (src / "geo" / "tet.ply").write_bytes(head + V.tobytes() + b"".join(struct.pack("<B3i", 3, *f) for f in F))
+    (src / "box.obj").write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\nf 1 3 4\n")
+    (src / "scene.toml").write_text("""
+name = "portable"
+[camera]
+position = [0.0, 3.0, 4.0]
+target = [0.0, 0.3, 0.0]
+fov = 50
+resolution = [32, 24]
+[[lights]]
+name = "p"
+kind = "point"
+position = [0.0, 3.0, 1.0]
+power = 50
+shadow_map = 32
+[[shapes]]
+name = "floor"
+type = "rectangle"
+rotate = [1, 0, 0, -90]
+scale = 2.0
+[[shapes]]
+name = "tet"
+type = "ply"
+filename = "geo/tet.ply"
+translate = [-0.5, 0.5, 0.0]
+scale = 0.3
+[[shapes]]
+name = "tet2"
+type = "ply"
+filename = "geo/tet.ply"
+translate = [0.5, 0.5, 0.0]
+scale = 0.2
+[[shapes]]
+name = "card"
+type = "obj"
+filename = "box.obj"
+translate = [0.0, 0.2, 0.6]
+scale = 0.4
+""")
+    out = tmp_path / "exports" / "portable"
+    old = os.umask(0o077)
+    try:
+        m = export_scene(str(src / "scene.toml"), out)
+        export_scene(str(src / "scene.toml"), out, force=True)  # replacing keeps the modes
+    finally:
+        os.umask(old)
+    for p in [out, *out.rglob("*")]:
+        mode = stat.S_IMODE(p.stat().st_mode)
+        assert mode == (0o755 if p.is_dir() else 0o644), (str(p.relative_to(out)), oct(mode))
+    assert m["files"]["source_meshes"] == ["meshes/source/card.obj", "meshes/source/tet.ply"]  # one copy per file
+    shapes = {s["name"]: s for s in m["shapes"]}
+    assert shapes["tet"]["source_mesh"] == shapes["tet2"]["source_mesh"] == "meshes/source/tet.ply"
+    assert (out / "meshes/source/tet.ply").read_bytes() == (src / "geo" / "tet.ply").read_bytes()
+    assert (out / "meshes/source/card.obj").read_bytes() == (src / "box.obj").read_bytes()
+    for xml in ("scene.xml", "scene_mesh.xml"):
+        names = [e.get("value") for e in ET.parse(out / xml).iter("string") if e.get("name") == "filename"]
+        assert names and all(not os.path.isabs(n) and (out / n).is_file() for n in names), (xml, names)
+        assert str(src) not in (out / xml).read_text()
+    ref = load(str(src / "scene.toml"))
+    boxes = {s.id(): (np.array(s.bbox().min), np.array(s.bbox().max)) for s in ref.mi_scene.shapes()}
+    moved = tmp_path / "elsewhere"
+    shutil.move(str(out), str(moved))
+    shutil.rmtree(src)
+    cwd = os.getcwd()
+    os.chdir(tmp_path)
+    try:
+        loaded = mi.load_file(str(moved / "scene.xml"), optimize=False)
+    finally:
+        os.chdir(cwd)
+    got = {s.id(): (np.array(s.bbox().min), np.array(s.bbox().max)) for s in loaded.shapes()}
+    assert set(got) == set(boxes)
+    for k in boxes:
+        assert np.allclose(got[k][0], boxes[k][0], atol=1e-6) and np.allclose(got[k][1], boxes[k][1], atol=1e-6), k

@@ -182,8 +182,8 @@ def test_kernels_compile_once_per_fit(pp):
     import drjit as dr
     import mitsuba as mi
     from shadowlab.fit.objective import KernelCounter
-    from shadowlab.techniques.base import Param
-    p = Param("exponent", 80.0, "float", 1.0, 88.72, differentiable=True)
+    from shadowlab.techniques.base import get
+    p = get("esm").param("exponent")
     new = []
     with KernelCounter() as kc:
         for lo, hi in ((1.0, 88.72), (10.0, 70.0), (2.5, 40.0)):
@@ -216,16 +216,30 @@ def test_flip_loss_is_fitted_without_gradients(pp):
 
 
 def test_windows_follow_the_declaration():
-    from shadowlab.techniques.base import Param
-    size = Param("light_scale", 0.0, "float", 0.0, 100.0, differentiable=True)
-    assert S.window(size, 1.0, 1.0) == (0.0, 4.0, "linear")
-    assert S.window(size, 1.0, 6.5) == (0.0, 6.5, "linear")          # widened to hold the start
-    var = Param("min_variance", 1e-6, "float", 0.0, 0.01, differentiable=True)
-    lo, hi, scale = S.window(var, 1e-6, 1e-6)
+    """The windows of the real declarations (``shadowlab.techniques.base.get(name).param(...)``),
+    with the technique's default as the reference value r, as the fit uses them; the expected
+    windows are the search module's docstring examples (light_scale [0, 16], r = 1 → [0, 4];
+    vsm.min_variance [0, 0.01], r = 10⁻⁶ → log [10⁻⁹, 0.01]; hard.depth_bias [−10⁶, 10⁶],
+    r = 16 → [−32, 64]; msm.moment_bias [0, 0.1], r = 3·10⁻⁵ → log [3·10⁻⁸, 0.1])."""
+    from shadowlab.techniques.base import get
+    size = get("pcss").param("light_scale")
+    assert (size.lo, size.hi, size.default, size.differentiable) == (0.0, 16.0, 1.0, True)
+    assert S.window(size, size.default, size.default) == (0.0, 4.0, "linear")
+    assert S.window(size, size.default, 6.5) == (0.0, 6.5, "linear")  # widened to hold the start
+    var = get("vsm").param("min_variance")
+    assert (var.lo, var.hi, var.default) == (0.0, 0.01, 1e-6)
+    lo, hi, scale = S.window(var, var.default, var.default)
     assert scale == "log" and lo == pytest.approx(1e-9) and hi == 0.01
-    d = S.make_dim(var, "auto", 1e-6, 1e-6)
+    d = S.make_dim(var, "auto", var.default, var.default)
     assert d.method == "adam" and d.to_unit(1e-6) == pytest.approx(3 / 7) and d.from_unit(1.0) <= 0.01
-    kern = Param("kernel", 3, "int", 1, 9)
+    bias = get("hard").param("depth_bias")
+    assert S.window(bias, bias.default, bias.default) == (-32, 64, "linear")
+    mb = get("msm").param("moment_bias")
+    lo, hi, scale = S.window(mb, mb.default, mb.default)
+    assert scale == "log" and lo == pytest.approx(3e-8) and hi == 0.1
+    kern = get("pcf").param("kernel")
+    assert (kern.kind, kern.lo, kern.hi, kern.differentiable) == ("int", 1, 9, False)
+    assert S.window(kern, kern.default, kern.default) == (1, 9, "linear")
     assert S.make_dim(kern, "auto", 3, 3).method == "golden"
     with pytest.raises(InputError, match="not differentiable"):
         S.make_dim(kern, "adam", 3, 3, tech="pcf")
@@ -233,9 +247,11 @@ def test_windows_follow_the_declaration():
         S.make_dim(size, "auto", 1.0, 1.0, user=(-1.0, 2.0), tech="pcss")
     with pytest.raises(InputError, match="outside --range"):
         S.make_dim(size, "auto", 3.0, 1.0, user=(0.5, 2.0), tech="pcss")
-    choice = Param("pattern", "grid", "choice", choices=("grid", "gaussian"))
-    assert S.make_dim(choice, "auto", "grid", "grid").values == ("grid", "gaussian")
-    hi32 = Param("exponent", 80.0, "float", 1.0, 88.72, differentiable=True)
+    choice = get("pcf").param("pattern")
+    assert S.make_dim(choice, "auto", "grid", "grid").values == choice.choices
+    assert S.make_dim(choice, "auto", "grid", "grid").values[:2] == ("grid", "gaussian")
+    hi32 = get("esm").param("exponent")
+    assert (hi32.default, hi32.hi) == (80.0, 88.72)
     d = S.make_dim(hi32, "adam", 80.0, 80.0)
     assert d.from_unit(1.0) <= 88.72                                     # float32 never steps over hi
 

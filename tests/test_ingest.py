@@ -281,3 +281,28 @@ def test_ingest_channel_to_light_mapping(proof, tmp_path):
         ingest(SCENE, img, shaded=True, layer="diffuse", base=proof["base"])
     with pytest.raises(ReferenceError_, match="no reference"):
         ingest(SCENE, img, channels=["vis"], base=tmp_path / "empty_store")
+
+
+def test_ingest_labels_and_a_default_out_that_keeps_the_previous_report(proof, tmp_path, monkeypatch, capsys):
+    """``--label TEXT`` names the image and ``--label CHANNEL=TEXT`` titles a channel in the report;
+    without ``--out`` each ingest gets a directory of its own (reports/ingest/SCENE-IMAGE, -2, …)."""
+    import json
+    from shadowlab import cli as shadowlab_cli
+    monkeypatch.setenv("SHADOWLAB_REFERENCES", str(proof["base"]))
+    monkeypatch.chdir(tmp_path)
+    args = ["ingest", SCENE, str(proof["image"]), "--channel", "shadow.panel"]
+    rc = shadowlab_cli.main(args + ["--label", "engine build 42", "--label", "shadow.panel=PCF 5x5"])
+    assert rc == 0, capsys.readouterr().err
+    first = tmp_path / "reports" / "ingest" / f"{Path(SCENE).stem}-numpy"
+    run = json.loads((first / "metrics.json").read_text())
+    assert list(run["techniques"]) == ["engine build 42"]
+    assert "panel</b> visibility (PCF 5x5)" in (first / "index.html").read_text()
+    before = (first / "metrics.json").read_bytes()
+    assert shadowlab_cli.main(args) == 0
+    second = first.with_name(first.name + "-2")
+    assert (second / "metrics.json").exists() and (first / "metrics.json").read_bytes() == before
+    capsys.readouterr()
+    for bad, why in ((["--label", "nope=x"], "not one of the --channel channels"),
+                     (["--label", "a", "--label", "b"], "one name for the image")):
+        assert shadowlab_cli.main(args + bad + ["--out", str(tmp_path / "x")]) == 2
+        assert why in capsys.readouterr().err

@@ -153,6 +153,95 @@ def test_vsm_equals_pcf_for_two_parallel_planes(planes):
     assert np.abs(v0 - p)[mask].max() > 0.5
 
 
+def test_chebyshev_floors_the_variance_at_min_variance_it_does_not_add_it(mitsuba_backend):
+    """§3.3: σ² = max(M2 − M1², σ²_min), p_max = σ²/(σ² + (z̃ − μ)²) for z̃ > μ, else 1. Hand-made
+    moment pairs with μ = 0.5, z̃ = 0.6 ((z̃ − μ)² = 0.01):
+
+    * σ² = 0.01 above σ²_min = 0.004: the floor leaves it, p = 0.01/0.02 = 0.5 (adding would give
+      0.014/0.024 = 0.583);
+    * σ² = 0.0025 below σ²_min = 0.01: the floor replaces it, p = 0.01/0.02 = 0.5 (adding: 0.0125/0.0225 = 0.556);
+    * σ² = 0 (a single depth): p = σ²_min/(σ²_min + 0.01) = 0.004/0.014 = 0.2857;
+    * σ²_min = 0 leaves σ²: 0.01/0.02 = 0.5; z̃ ≤ μ is lit: 1."""
+    import mitsuba as mi
+    from shadowlab.techniques.prefilter import chebyshev
+    mu, zr = 0.5, 0.6
+    cases = [  # (σ², σ²_min, p_max)
+        (0.01, 0.004, 0.5), (0.0025, 0.01, 0.5), (0.0, 0.004, 0.004 / 0.014), (0.01, 0.0, 0.5),
+        (0.04, 0.01, 0.04 / 0.05), (0.001, 0.03, 0.03 / 0.04)]
+    var = np.array([c[0] for c in cases])
+    m1 = mi.Float(np.full(len(cases), mu, np.float32))
+    m2 = mi.Float((mu * mu + var).astype(np.float32))
+    p = chebyshev(m1, m2, mi.Float(np.full(len(cases), zr, np.float32)),
+                  mi.Float(np.array([c[1] for c in cases], np.float32))).numpy()
+    assert p == pytest.approx([c[2] for c in cases], abs=2e-5), p
+    lit = chebyshev(m1, m2, mi.Float(np.full(len(cases), 0.45, np.float32)), mi.Float(0.004)).numpy()
+    assert (lit == 1.0).all()
+
+
+def test_vsm_min_variance_floors_the_variance_on_parallel_planes(planes):
+    """The floor, seen in a render: with σ²_min = 10⁻³ (Δ = d2 − d1 = 2/(far − near) in zn, Δ² = 0.0366)
+    VSM still equals PCF (box 3×3, 128² map) wherever the footprint's own variance p(1 − p)Δ² is
+    above σ²_min (0.05 < p < 0.95: p(1 − p)Δ² ≥ 0.0017), and in the umbra (p = 0, σ² = 0) it is
+    exactly σ²_min/(σ²_min + Δ²) = 0.0266. Adding σ²_min instead would move the penumbra by up to
+    0.03 (p = ½: 0.526)."""
+    scene, frame = planes
+    mask = frame.gbuffer.mask[..., 0]
+    f0 = frame.light_view("panel", res=128).proj.faces[0]
+    delta = 2.0 / (f0.far - f0.near)                   # occluder at height 2, floor at 0, light at 4
+    mv = 1e-3
+    v = vis(frame, "panel", "vsm", kernel=3, resolution=128, min_variance=mv)
+    p = vis(frame, "panel", "pcf", kernel=3, bilinear=True, resolution=128)
+    pen = mask & (p > 0.05) & (p < 0.95)
+    umbra = mask & (p == 0.0)
+    assert pen.sum() > 200 and umbra.sum() > 1000
+    assert np.abs(v - p)[pen].max() < 1e-5, np.abs(v - p)[pen].max()
+    assert v[umbra] == pytest.approx(mv / (mv + delta ** 2), rel=1e-4)
+
+
+def test_evsm_minimum_variance_is_scaled_by_the_square_of_the_warps_derivative(planes):
+    """§3.5 (Lauritzen's sample): σ²_min is given in zn² units and mapped to each warp by the
+    square of its derivative at the receiver: w = 2·zn − 1, pos = e^{k⁺w}, d pos/d zn = 2k⁺·pos,
+    so σ²_min⁺ = σ²_min·(2k⁺·pos(z̃))², σ²_min⁻ = σ²_min·(2k⁻·neg(z̃))². On ``parallel_planes``
+    with ``kernel`` 1 and no receiver bias, a floor point (z̃ at depth 4) whose 2×2 lookup sees
+    only the occluder (depth 2) has M1 = pos(d1), M2 = M1² (no variance), so
+
+        p⁺ = σ²_min⁺/(σ²_min⁺ + (pos(z̃) − pos(d1))²)   (components 2)
+        min(p⁺, p⁻), p⁻ likewise with neg = −e^{−k⁻w}   (components 4)
+
+    computed here in float64 from the depths (zn = (z − near)/(far − near)). Measured: equal to
+    10⁻⁶ relative. Without the derivative (σ²_min alone) the umbra would be lit (p⁺ ≈ 1); with
+    k instead of 2k it would be 4× darker."""
+    import math
+    scene, frame = planes
+    gb = frame.gbuffer
+    from shadowlab.render.gbuffer import vec_numpy
+    x = gb.to_image(vec_numpy(gb.p))[..., 0]
+    floor = (gb.shape_id[..., 0] == scene.shape_names.index("floor")) & gb.mask[..., 0]
+    umbra = floor & (x < -1.0)           # the occluder's shadow, ≥ 3 texels (128² map) from its edge
+    assert umbra.sum() > 1000
+    f0 = frame.light_view("panel", res=128).proj.faces[0]
+    w_rec, w_occ = (2.0 * (z - f0.near) / (f0.far - f0.near) - 1.0 for z in (4.0, 2.0))
+
+    def bound(k, mv, sign):
+        r, o = sign * math.exp(sign * k * w_rec), sign * math.exp(sign * k * w_occ)
+        s = mv * (2.0 * k * r) ** 2
+        return s / (s + (r - o) ** 2)
+
+    nobias = {"constant_bias": 0.0, "slope_bias": 0.0, "max_slope_bias": 0.0, "normal_offset": 0.0}
+    for comps, kp, kn, mv in ((2, 40.0, 5.0, 1e-6), (2, 10.0, 5.0, 1e-4), (4, 40.0, 5.0, 1e-3), (4, 10.0, 1.0, 1e-4)):
+        r = get("evsm").render(frame, {"kernel": 1, "resolution": 128, "components": comps, "exp_pos": kp,
+                                       "exp_neg": kn, "min_variance": mv, **nobias})
+        assert np.all(r.aovs["panel.receiver_bias"][umbra] == 0.0)
+        v = frame.image(r.visibility["panel"])
+        pp, pn = bound(kp, mv, 1.0), bound(kn, mv, -1.0)
+        want = pp if comps == 2 else min(pp, pn)
+        if comps == 4:
+            assert pn < 0.1 * pp                     # the negative warp's bound is the one seen
+        assert v[umbra] == pytest.approx(want, rel=1e-4), (comps, kp, kn, mv, v[umbra].min(), v[umbra].max(), want)
+    # the numbers (components 2, k⁺ 40, σ²_min 10⁻⁶): 4k²σ²_min/(4k²σ²_min + 1) = 0.0064/1.0064
+    assert bound(40.0, 1e-6, 1.0) == pytest.approx(0.0064 / 1.0064, rel=1e-5)
+
+
 @pytest.fixture(scope="module")
 def stack(mitsuba_backend):
     from shadowlab.reference import store

@@ -89,6 +89,55 @@ def test_penumbra_width_agrees_with_the_w_penumbra_prediction(planes):
     assert np.all(np.abs(v[s] - (0.5 + x[s])) < 0.02)
 
 
+def test_blocker_search_width_is_the_closed_form_from_the_scene_numbers(planes):
+    """Step 1, w_search = (z̃ − z_near)/z̃ · w_light in near-plane units, N/(2·z_near·tan) texels
+    per near-plane unit. ``parallel_planes`` by hand: light at height 4 looking down, its side 1;
+    its camera's near plane is half the 2 m gap to the nearest geometry (the occluder's top):
+    z_near = 1; tan(half fov) = 1.02 × 10/2 = 5.1 (the occluder's far corner, x = −10 at depth 2,
+    plus the fit's 2 % margin); N = 1024. The floor (z̃ = 4): 3/4 · 1024/10.2 = 75.294 texels;
+    the occluder's top (z̃ = 2): 1/2 · 1024/10.2 = 50.196; both scale with ``light_scale``."""
+    frame, _, _, floor = planes
+    scene = frame.scene
+    gb = frame.gbuffer
+    occ = (gb.shape_id[..., 0] == scene.shape_names.index("occluder")) & gb.mask[..., 0]
+    f0 = frame.light_view(LIGHT).proj.faces[0]
+    near, tan, N = 1.0, 5.1, 1024
+    assert (f0.near, f0.scale, frame.light_view(LIGHT).res) == (pytest.approx(near, rel=1e-6),
+                                                              pytest.approx(tan, rel=1e-6), N)
+    assert floor.sum() > 1000 and occ.sum() > 1000
+    # (z̃ − z_near)/z̃ · w_light · N/(2·z_near·tan) at w_light = 1: floor 3/4 · 1024/10.2, occluder 1/2 · 1024/10.2
+    at_one = {H_LIGHT: 75.29411764705883, H_LIGHT - H_OCC: 50.19607843137255}
+    for z, w in at_one.items():
+        assert (z - near) / z * N / (2.0 * near * tan) == pytest.approx(w, rel=1e-12)
+    for scale in (1.0, 0.6):
+        r = get("pcss").render(frame, {"light_scale": scale, "blocker_samples": 16, "pcf_samples": 1})
+        st = r.aovs[f"{LIGHT}.search_texels"]
+        for sel, z in ((floor, H_LIGHT), (occ, H_LIGHT - H_OCC)):
+            want = scale * at_one[z]
+            assert np.allclose(st[sel], want, rtol=2e-5), (scale, z, st[sel].min(), st[sel].max(), want)
+
+
+def test_orthographic_blocker_search_width_is_the_closed_form(sun_edge):
+    """Directional light: w_search = (z̃ − z_near)·tan(w_light) world units, 2·half_extent/N per
+    texel. ``sun_edge`` by hand: the non-emitting geometry's box is [−4, 2] × [0, 1] × [−2, 2],
+    centre (−1, ½, 0), radius R = √(3² + ½² + 2²) = √13.25; the light camera sits 2R above the
+    centre looking down, z_near = R, half extent R; the floor's depth z̃ = ½ + 2R, so
+    w_search = (½ + R)·tan(√π/2·4°)·1024/(2R) = 36.075 texels (the camera sees only the floor)."""
+    frame = sun_edge
+    R = math.sqrt(13.25)
+    f0 = frame.light_view("sun").proj.faces[0]
+    assert f0.ortho and f0.near == pytest.approx(R, rel=1e-6) and f0.scale == pytest.approx(R, rel=1e-6)
+    assert f0.origin[1] == pytest.approx(0.5 + 2 * R, rel=1e-6)
+    w_light = math.sqrt(math.pi) / 2 * math.radians(SUN_THETA)
+    want = (0.5 + R) * math.tan(w_light) * 1024 / (2 * R)
+    assert want == pytest.approx(36.0749, abs=1e-4)
+    m = frame.gbuffer.mask[..., 0]
+    assert m.sum() > 1000
+    r = get("pcss").render(frame, {"blocker_samples": 16, "pcf_samples": 1})
+    st = r.aovs["sun.search_texels"]
+    assert np.allclose(st[m], want, rtol=2e-5), (st[m].min(), st[m].max(), want)
+
+
 @pytest.mark.parametrize("size", [0.5, 1.0, 1.5])
 def test_widths_grow_linearly_with_light_size_like_the_closed_form(planes, size):
     frame, _, x, floor = planes
@@ -121,20 +170,31 @@ def test_zero_light_size_reduces_to_the_hard_shadow_map(planes, mitsuba_backend)
     assert d.max() < 1e-6
 
 
-def test_directional_light_penumbra_is_depth_difference_times_tan_light_size(mitsuba_backend):
+#: sun of angular diameter SUN_THETA° straight overhead, half-plane occluder (x ∈ [−4, 0],
+#: z ∈ [−2, 2]) at height SUN_H over a 4 × 4 floor, camera at height 0.5 looking straight down
+SUN_THETA, SUN_H = 4.0, 1.0
+SUN_EDGE = {
+    "name": "sun_edge",
+    "camera": {"position": [0.0, 0.5, 0.0], "target": [0.0, 0.0, 0.0], "up": [0, 0, 1], "fov": 30,
+               "resolution": [64, 64]},
+    "lights": [{"name": "sun", "kind": "directional", "direction": [0, -1, 0], "angular_diameter": SUN_THETA,
+                "irradiance": 3.0, "shadow_map": 1024}],
+    "shapes": [{"name": "floor", "type": "rectangle", "rotate": [1, 0, 0, -90], "scale": 2.0},
+               {"name": "occluder", "type": "rectangle", "translate": [-2.0, SUN_H, 0.0], "rotate": [1, 0, 0, 90],
+                "scale": 2.0}]}
+
+
+@pytest.fixture(scope="module")
+def sun_edge(mitsuba_backend):
+    return _build(SUN_EDGE)
+
+
+def test_directional_light_penumbra_is_depth_difference_times_tan_light_size(sun_edge):
     """Sun of angular diameter 4° straight overhead, half-plane occluder at height 1, camera
     looking straight down: w_penumbra = 1·tan(√π/2·θ) = 0.0620, 10–90 % width 0.0496 (measured
     0.04957; the disk's true 10–90 % width is 0.0480), RMSE against the disk closed form 0.020."""
-    theta, h = 4.0, 1.0
-    frame = _build({
-        "name": "sun_edge",
-        "camera": {"position": [0.0, 0.5, 0.0], "target": [0.0, 0.0, 0.0], "up": [0, 0, 1], "fov": 30,
-                   "resolution": [64, 64]},
-        "lights": [{"name": "sun", "kind": "directional", "direction": [0, -1, 0], "angular_diameter": theta,
-                    "irradiance": 3.0, "shadow_map": 1024}],
-        "shapes": [{"name": "floor", "type": "rectangle", "rotate": [1, 0, 0, -90], "scale": 2.0},
-                   {"name": "occluder", "type": "rectangle", "translate": [-2.0, h, 0.0], "rotate": [1, 0, 0, 90],
-                    "scale": 2.0}]})
+    theta, h = SUN_THETA, SUN_H
+    frame = sun_edge
     from shadowlab.render.gbuffer import vec_numpy
     gb = frame.gbuffer
     x = gb.to_image(vec_numpy(gb.p))[..., 0]
@@ -174,18 +234,24 @@ def test_receiver_plane_leaves_parallel_planes_unchanged(planes):
 # light size: mapping and gradient
 
 def test_light_size_mapping_from_the_scene(planes):
+    """w_light at ``light_scale`` 1 = the side of the light's equal-area square (the module
+    docstring's table): rect w × h → √(w·h); disk, spot, sphere, point of radius r → √(π r²) =
+    √π·r; directional of angular diameter θ → √(π (θ/2)²) = √π/2·θ (radians). The expected values
+    are worked out by hand from the scene keys (√π = 1.7724538509055159), not from the module."""
     from shadowlab.scene.spec import LightSpec
-    sq = math.sqrt(math.pi)
-    cases = [(LightSpec("a", "rect", size=(2.0, 0.5)), 1.0),
-             (LightSpec("b", "disk", radius=0.5), sq * 0.5),
-             (LightSpec("c", "sphere", radius=0.2), sq * 0.2),
-             (LightSpec("d", "spot", radius=0.1), sq * 0.1),
-             (LightSpec("e", "point", radius=0.0), 0.0),
-             (LightSpec("f", "directional", angular_diameter=0.53), sq / 2 * math.radians(0.53))]
+    cases = [(LightSpec("a", "rect", size=(2.0, 0.5)), 1.0),                      # √(2·0.5) = √1
+             (LightSpec("a2", "rect", size=(3.0, 1.2)), 1.8973665961010275),      # √3.6
+             (LightSpec("b", "disk", radius=0.5), 0.8862269254527579),            # √π·0.5
+             (LightSpec("c", "sphere", radius=0.2), 0.3544907701811032),          # √π·0.2
+             (LightSpec("d", "spot", radius=0.1), 0.1772453850905516),            # √π·0.1
+             (LightSpec("e", "point", radius=0.3), 0.5317361552716547),           # √π·0.3
+             (LightSpec("e0", "point", radius=0.0), 0.0),                         # delta light
+             (LightSpec("f", "directional", angular_diameter=0.53), 0.008197816217557791),  # √π/2·0.53°·π/180
+             (LightSpec("f2", "directional", angular_diameter=2.0), 0.03093515553795393)]   # √π/2·2°·π/180
     for light, expected in cases:
-        assert pcss_mod.scene_light_size(light) == pytest.approx(expected, rel=1e-12)
-        assert pcss_mod.scene_light_size(light) == pytest.approx(
-            pcss_mod.SIZE_FACTOR[light.kind] * light.physical_size, rel=1e-12)
+        assert pcss_mod.scene_light_size(light) == pytest.approx(expected, rel=1e-12), light.name
+    # the equal-area property itself: w_light² = the light's area (solid angle for the sun, small angle)
+    assert pcss_mod.scene_light_size(LightSpec("g", "disk", radius=0.7)) ** 2 == pytest.approx(math.pi * 0.7 ** 2)
     r = get("pcss").render(planes[0], {})
     assert r.stats["light_size"][LIGHT] == 1.0
     assert get("pcss").render(planes[0], {"light_scale": 0.7}).stats["light_size"][LIGHT] == pytest.approx(0.7)

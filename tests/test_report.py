@@ -192,3 +192,143 @@ def test_bad_run_into_missing_dir_creates_nothing(tmp_path):
     with pytest.raises(InputError, match="run.images.truth.shaded"):
         build(tmp_path / "new", bad)
     assert not any(tmp_path.iterdir())
+
+
+# --------------------------------------------------------------------------------------------
+# the page as a comparison tool: two metric tables, charts, the comparator's data, the gate's
+# verdict, the light summary, lights in view left out of the colour scale, the gate page's bars
+
+
+def _tables(html: str) -> list[list[str]]:
+    """The header cells of each metrics table of the page, in order."""
+    return [re.findall(r"<th>([^<]*)</th>", t) for t in re.findall(r'<table class="metrics"><thead>(.*?)</thead>', html)]
+
+
+def _scale_after(html: str, alt: str) -> float:
+    i = html.index(f'alt="{alt}"')
+    return float(re.search(r"<span>0</span><span>\+([^<]+)</span>", html[i:]).group(1))
+
+
+def test_metrics_are_split_into_key_columns_and_the_rest(tmp_path):
+    run = make_run()
+    for t in run["techniques"].values():
+        t["metrics"].update({"rmse_penumbra": 0.1, "mae": 0.01, "mae_penumbra": 0.02, "flip_penumbra": 0.3})
+    html = build(tmp_path / "r", run).read_text()
+    key, rest = _tables(html)[:2]
+    assert key == ["technique", "rmse", "rmse_penumbra", "leak_rate", "psnr", "ssim", "time_s"]
+    assert rest == ["technique", "mae", "mae_penumbra", "flip_penumbra"]
+    assert "| mae_penumbra |" in (tmp_path / "r" / "summary.md").read_text()  # the Markdown keeps one table
+
+
+def test_charts_and_comparator_data(tmp_path):
+    run = make_run()
+    band = lambda r: [{"lo": 0.0, "hi": 5.0, "pixels": 3, "rmse": r, "rmse_penumbra": r, "leak_rate": 0.0,  # noqa: E731
+                       "overdark_rate": 0.0}, {"lo": 5.0, "hi": float("inf"), "pixels": 3, "rmse": 2 * r,
+                                               "rmse_penumbra": r, "leak_rate": 0.0, "overdark_rate": 0.0}]
+    run["techniques"]["pcf"]["bands"] = {"key": {"distance": band(0.1)}}
+    run["techniques"]["pcss"]["bands"] = {"key": {"distance": band(0.2)}}
+    run["techniques"]["pcss"]["per_light"]["key"]["rmse_penumbra"] = 0.02
+    out = tmp_path / "r"
+    html = build(out, run).read_text()
+    charts = re.findall(r'<svg class="chart".*?</svg>', html, re.S)
+    assert len(charts) == 4                                    # penumbra RMSE, leak rate, time scatter, bands of key
+    assert "<title>pcss · key: 0.02</title>" in charts[0]     # per-light bars carry their exact value
+    assert "<title>pcf · key: n/a</title>" in charts[0]       # missing: n/a, no bar
+    assert "<title>pcf · key: 0</title>" in charts[1]
+    assert charts[2].count("<circle") == 2 and "log scale" not in charts[2]
+    assert "key: visibility RMSE by distance" in charts[3] and "≥5" in charts[3]
+    assert '<script src=' not in html and "http" not in "".join(charts).replace("http://www.w3.org/2000/svg", "")
+    data = json.loads(re.search(r'<script type="application/json" id="cmp-data">(.*?)</script>', html, re.S).group(1))
+    assert (data["width"], data["height"]) == (N, N)
+    assert [i["name"] for i in data["items"]] == ["pcf", "pcss", "mi.render (Mitsuba direct)"]
+    assert [l["label"] for l in data["items"][0]["layers"]] == ["shaded", "key visibility", "fill visibility"]
+    for it in data["items"]:                                   # every image the comparator shows exists
+        for l in it["layers"]:
+            assert all((out / l[k]).is_file() for k in ("a", "b", "err")), l
+            assert float(l["scale"]) > 0
+
+
+def test_a_light_in_view_is_left_out_of_the_mitsuba_error_scale(tmp_path):
+    run = make_run()
+    before = _scale_after(build(tmp_path / "a", run).read_text(), "signed error mi.render - truth")
+    run["images"]["mitsuba"][10:20, 10:20] = 32.0             # a sphere light in view: 2.4 % of the pixels
+    run["images"]["truth"]["shaded"][10:20, 10:20] = 0.0       # no shading point there in the truth
+    guessed = _scale_after(build(tmp_path / "b", run).read_text(), "signed error mi.render - truth")
+    assert guessed < 0.1 and before < 0.1
+    em = np.zeros((N, N), bool)
+    em[10:20, 10:20] = True
+    run["images"]["emitter"] = em                              # the G-buffer's pixels on a light
+    exact = _scale_after(build(tmp_path / "c", run).read_text(), "signed error mi.render - truth")
+    assert exact == pytest.approx(guessed, rel=0.05)
+    run["images"]["emitter"] = em[:, :-1]
+    with pytest.raises(InputError, match="run.images.emitter"):
+        build(tmp_path / "d", run)
+
+
+def test_emitter_pixels_from_the_gbuffer_shape_ids():
+    from shadowlab.report.images import emitter_pixels, error_scale, grow
+    sid = np.full((4, 4, 4), 0, np.int32)
+    sid[1, 1, 0] = 3                                           # one sub-pixel sees the light's shape
+    em = emitter_pixels(sid, {"bulb": 3, "sun": 5})
+    assert em.sum() == 1 and em[1, 1]
+    assert grow(em).sum() == 9
+    err = np.zeros((4, 4))
+    err[1, 1] = 32.0
+    err[3, 3] = 0.25
+    assert error_scale(err, 100) == 32.0 and error_scale(err, 100, exclude=grow(em)) == 0.25
+
+
+def test_the_light_summary_says_a_spot_with_a_radius_has_no_cone(tmp_path):
+    from shadowlab.report.lights import light_info
+    from shadowlab.scene.spec import LightSpec
+    run = make_run()
+    run["light_info"] = light_info([LightSpec("key", "spot", radius=0.2, angle=35.0),
+                                    LightSpec("fill", "spot", radius=0.0, angle=20.0)])
+    html = build(tmp_path / "r", run).read_text()
+    table = re.search(r'<table class="metrics lights">.*?</table>', html, re.S).group(0)
+    assert "no cone in the truth" in table and "radius 0.2 m, angle 35°" in table
+    assert "hard cone of half-angle 20°" in table
+    assert json.loads((tmp_path / "r" / "metrics.json").read_text())["light_info"]["key"]["kind"] == "spot"
+    run["light_info"] = {"key": "spot"}
+    with pytest.raises(InputError, match="run.light_info.key"):
+        build(tmp_path / "s", run)
+
+
+def test_the_gate_verdict_is_at_the_top_not_a_json_dump(tmp_path):
+    run = make_run()
+    run["ingest"] = {"image": "frame.exr", "mode": "visibility", "against": "V", "channels": {"key": "shadow.key"},
+                     "notes": ["a note"]}
+    run["gate"] = {"file": "gate.toml", "passed": False, "failed": ["g stat.pixels"], "lines": ["…"],
+                   "checks": [{"gate": "g", "check": "budget.rmse", "kind": "budget", "value": 0.01, "threshold": 0.05,
+                               "op": "<=", "passed": True, "text": "ok"},
+                              {"gate": "g", "check": "stat.pixels", "kind": "stat", "value": 0.9, "threshold": 0.99,
+                               "op": ">=", "passed": False, "text": "fraction of pixels that pass"}]}
+    html = build(tmp_path / "r", run).read_text()
+    verdict = html.index('<div class="verdict fail" id="verdict"><span class="word">FAIL</span>')
+    assert verdict < html.index("<h2>Metrics</h2>") and verdict < html.index("Reference: 256 spp")
+    rows = re.findall(r'<td class="(pass|fail)">', html)
+    assert rows == ["fail", "pass"]                            # failed checks first
+    assert "shadow.key" in html and "note: a note" in html
+    assert '"passed"' not in html and '"checks"' not in html   # no JSON of the gate or the ingest
+    assert "## Gate: FAIL (gate.toml)" in (tmp_path / "r" / "summary.md").read_text()
+    run["gate"]["passed"], run["gate"]["failed"] = True, []
+    html = build(tmp_path / "r", run).read_text()
+    assert '<div class="verdict pass" id="verdict"><span class="word">PASS</span>' in html
+
+
+def test_the_gate_pages_heat_maps_have_colour_bars():
+    from types import SimpleNamespace as NS
+
+    from shadowlab.gate.html import page_html
+    ref = np.full((8, 8), 0.5)
+    err = np.linspace(-0.2, 0.2, 64).reshape(8, 8)
+    check = NS(name="stat.pixels", passed=False, value=0.5, op=">=", threshold=0.99, text="")
+    r = NS(name="g", passed=False, target="visibility", info={"alpha_value": 1e-6}, failed=[check], checks=[check],
+           images={"candidate": ref + err, "reference": ref, "error": err, "pvalue": np.full((8, 8), 0.5),
+                   "failed_pixels": np.zeros((8, 8), bool)})
+    html = page_html([r])
+    assert html.count("data:image/png;base64,") == 4          # the bars are CSS, not images
+    assert html.count('class="cbar err"') == 1 and html.count('class="cbar pv"') == 1
+    s = f"{float(re.search(r'±([0-9.e-]+)', html).group(1)):.3g}"
+    assert f"<span>&minus;{s}</span><span>0</span><span>+{s}</span>" in html
+    assert "p = 1e-06" in html and "untested" in html

@@ -5,12 +5,13 @@ Files (all geometry in world space, metres; matrices row-major, points are colum
 
 | file | content |
 |---|---|
-| ``scene.xml`` | Mitsuba 3 XML of exactly the scene the ground truth renders (analytic primitives, the same emitters, camera and the ``direct`` integrator); ``mitsuba scene.xml`` or ``mi.load_file`` |
+| ``scene.xml`` | Mitsuba 3 XML of exactly the scene the ground truth renders (analytic primitives, the same emitters, camera and the ``direct`` integrator); ``mitsuba scene.xml`` or ``mi.load_file``; every file it names is a relative path inside the export |
 | ``scene_mesh.xml`` | the same scene with every shape and area light replaced by its PLY (what a rasteriser sees) |
 | ``meshes/<shape>.ply`` | one triangle mesh per shape of the TOML (a capped cylinder = tube + two disks), ``meshes/light_<name>.ply`` per area light: binary PLY, positions, unit normals, uvs (:mod:`.ply`, :mod:`.mesh`) |
+| ``meshes/source/<shape>.ply`` / ``.obj`` | a copy of each PLY / OBJ file the scene's ``ply`` / ``obj`` shapes load (object space; ``scene.xml`` references the copy with the shape's ``to_world``) |
 | ``textures/<shape>_opacity.png`` | alpha-tested shapes: the thresholded binary opacity (0 / 255), nearest-texel lookup at the uv in the PLY |
 | ``camera.json`` | position, target, up, field of view, resolution, pixel centres, world→camera, camera→clip (and an OpenGL pair) |
-| ``lights.json`` | per light: kind, pose, physical size, colour, power, emitted radiance / intensity / irradiance |
+| ``lights.json`` | per light: kind, pose, physical size, colour, power, emitted radiance / intensity / irradiance; ``shadow_camera`` (the map ``hard`` samples: map size, depth format, near / far, per face Direct3D / OpenGL / Vulkan view and projection matrices, cube faces +X, −X, +Y, −Y, +Z, −Z with cube-map-sampling variants, :mod:`.shadow_camera`) and ``depth_bias`` (``hard``'s Direct3D bias and its ``glPolygonOffset`` / ``depthBias*`` equivalents for the depth format, :mod:`.bias`) |
 | ``scene.json`` | manifest: scene name and hash (a reference stores the same hash), shapes with albedo and PLY, bounds, conventions |
 
 Conventions (also written into the JSON files, key ``convention``):
@@ -26,6 +27,8 @@ Conventions (also written into the JSON files, key ``convention``):
   ndc = (2(i + ½)/W − 1, 1 − 2(j + ½)/H): the ground truth shades exactly these points.
 * ``opengl``: ``world_to_view`` (x right, y up, looking along −z) and ``view_to_clip``
   (gluPerspective, ndc.z ∈ [−1, 1]); the same pixels.
+* Files are written mode 644 and directories 755 whatever the umask (an export is meant to be
+  shared); the export moves as a whole: no path in it points outside it.
 * Lights: ``pose`` is the rigid local→world frame (columns: x, y, z axes and origin); area lights
   (rect, disk, spot with a radius) emit from the +z side of their pose; ``to_world`` is Mitsuba's
   transform of the canonical primitive (rectangle [−1, 1]², disk and sphere of radius 1).
@@ -56,13 +59,15 @@ from ..scene.spec import SceneSpec, load_spec, resolve
 from ..scene.mesh import matrix_of, sagitta, triangulate
 from .mitsuba_xml import dict_to_xml
 from .ply import write_ply
+from .shadow_camera import depth_bias_info, hard_defaults, shadow_camera
 
-__all__ = ["export_scene", "camera_info", "light_info", "EXPORT_FILES", "FORMAT_VERSION"]
+__all__ = ["export_scene", "camera_info", "light_info", "EXPORT_FILES", "FORMAT_VERSION", "FILE_MODE", "DIR_MODE"]
 
 FORMAT_VERSION = 1
 EXPORT_FILES = ("scene.xml", "scene_mesh.xml", "camera.json", "lights.json", "scene.json")
 EXPORT_DIRS = ("meshes", "textures")
 DEFAULT_SPP = 64
+FILE_MODE, DIR_MODE = 0o644, 0o755  # whatever the umask: an export is meant to be shared
 
 CAMERA_CONVENTION = {
     "world": "right-handed, metres; the built-in scenes have +y up",
@@ -97,6 +102,17 @@ LIGHT_CONVENTION = {
                      "diameter in RADIANS; 0 = a delta light",
     "ply": "the emitting geometry (area lights only), world space, triangles wound counter-clockwise around the "
            "emitting side's normal; null for delta lights",
+    "shadow_camera": "the light camera of the depth map shadowlab's hard technique samples (default parameters, map "
+                     "size = the light's shadow_map, depth format = its depth_bits): per face direct3d (left-handed "
+                     "view looking down +z, clip z 0..1, viewport row 0 = ndc y +1 = shadowlab's texel row 0), opengl "
+                     "(view looking down -z, clip z -1..1, window row 0 = ndc y -1) and vulkan (direct3d with clip y "
+                     "negated) world_to_view / view_to_clip / world_to_clip; point and sphere lights: six faces in "
+                     "the order +X, -X, +Y, -Y, +Z, -Z, each with cubemap matrices oriented for samplerCube / "
+                     "TextureCube lookups with the direction p - position (same frustum and depths)",
+    "depth_bias": "hard's Direct3D rasterizer depth bias (DepthBias, SlopeScaledDepthBias, DepthBiasClamp) for the "
+                  "light's depth format, and the glPolygonOffsetClamp(factor, units, clamp) / Vulkan depthBias* "
+                  "values that give the same bias for each minimum resolvable difference r an implementation may "
+                  "use (units = DepthBias r_d3d / r); receiver: hard's shader-side biases",
 }
 
 SCENE_CONVENTION = {
@@ -261,16 +277,21 @@ def _texture_files(d, owner: str, save_bitmap):
     return d
 
 
-def _scene_dicts(sc, spp: int, mesh_files: dict | None, save_bitmap):
+def _scene_dicts(sc, spp: int, mesh_files: dict | None, save_bitmap, source_mesh=None):
     """(dict for scene.xml, per-shape Mitsuba dicts, per-light dicts); with ``mesh_files`` the shapes
-    and area lights are PLY shapes (scene_mesh.xml). Opacity tensors become files (``save_bitmap``)."""
+    and area lights are PLY shapes (scene_mesh.xml). Opacity tensors become files (``save_bitmap``);
+    the XML's ``ply`` / ``obj`` shapes read ``source_mesh(shape, type, path)`` (the copy beside it),
+    the returned per-shape dicts keep the scene's own path."""
     d = {"type": "scene"}
     shapes = {}
     for s in sc.spec.shapes:
         sd = _texture_files(shape_dicts(s), s.name, save_bitmap)
         shapes[s.name] = sd
         if mesh_files is None:
-            d.update(sd)
+            for key, v in sd.items():
+                if source_mesh is not None and v.get("type") in ("ply", "obj") and v.get("filename"):
+                    v = {**v, "filename": source_mesh(s.name, v["type"], v["filename"])}
+                d[key] = v
         else:
             d[s.name] = {"type": "ply", "filename": mesh_files[s.name], "bsdf": next(iter(sd.values()))["bsdf"]}
     sensor = sensor_dict(sc.spec.camera, spp=spp)
@@ -287,6 +308,17 @@ def _scene_dicts(sc, spp: int, mesh_files: dict | None, save_bitmap):
             d[key] = ld
     d["integrator"] = {"type": "direct"}
     return d, shapes, lights
+
+
+def _publish_modes(root: Path) -> None:
+    """Files FILE_MODE (644), directories DIR_MODE (755) below and including ``root``: temporary
+    files (mkstemp) are 600 and directories made under a restrictive umask 700."""
+    os.chmod(root, DIR_MODE)
+    for dirpath, dirnames, filenames in os.walk(root):
+        for n in dirnames:
+            os.chmod(os.path.join(dirpath, n), DIR_MODE)
+        for n in filenames:
+            os.chmod(os.path.join(dirpath, n), FILE_MODE)
 
 
 def _install(tmp: Path, out: Path) -> None:
@@ -354,8 +386,20 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
                 (tmp / textures[digest]).write_bytes(png)
             return textures[digest]
 
+        sources = {}  # the scene's PLY / OBJ file -> its copy (relative), one copy per file
+
+        def source_mesh(owner, kind, path):
+            """Copy a mesh file the scene loads into meshes/source/ (scene.xml reads the copy)."""
+            key = str(Path(path).resolve())
+            if key not in sources:
+                rel = f"meshes/source/{owner}.{kind}"
+                (tmp / "meshes" / "source").mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(key, tmp / rel)
+                sources[key] = rel
+            return sources[key]
+
         mesh_files, shapes_meta = {}, []
-        exact_d, shape_d, light_d = _scene_dicts(sc, spp, None, save_bitmap)
+        exact_d, shape_d, light_d = _scene_dicts(sc, spp, None, save_bitmap, source_mesh)
         for s in spec.shapes:
             parts = [triangulate(dd, segments) for dd in shape_d[s.name].values()]
             P, N, UV, F, off = [], [], [], [], 0
@@ -369,6 +413,8 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
             entry = {"name": s.name, "type": s.type, "ply": rel, "mitsuba_keys": list(shape_d[s.name]),
                      "albedo": [float(a) for a in s.albedo], "two_sided": bool(s.two_sided),
                      "triangles": int(sum(len(f) for f in F)), "vertices": int(off)}
+            if s.type in ("ply", "obj") and s.filename:
+                entry["source_mesh"] = sources[str(Path(s.filename).resolve())]
             if s.alpha_texture is not None:
                 tex = _find(shape_d[s.name], lambda x: x.get("type") == "bitmap")
                 entry["alpha"] = {"opacity_texture": tex["filename"], "source_texture": s.alpha_texture,
@@ -376,6 +422,7 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
                                   "lookup": "nearest texel at the PLY's uv, row 0 at v = 0; opacity 0 = discard"}
             shapes_meta.append(entry)
         lights_meta = []
+        hard = hard_defaults()
         for l in spec.lights:
             ld = light_d[l.name]
             rel = None
@@ -385,7 +432,10 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
                 write_ply(tmp / rel, P, N, UV, F,
                           comment=f"shadowlab export of scene {spec.name}, light {l.name} ({l.kind}), emits along the normals")
                 mesh_files[f"light_{l.name}"] = rel
-            lights_meta.append(light_info(l, ld, rel))
+            info = light_info(l, ld, rel)
+            info["shadow_camera"] = shadow_camera(l, sc, hard)
+            info["depth_bias"] = depth_bias_info(l, hard)
+            lights_meta.append(info)
 
         W, H = spec.camera.resolution
         defaults = {"spp": spp, "resx": W, "resy": H}
@@ -404,6 +454,7 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
             "units": "metres",
             "files": {"mitsuba_xml": "scene.xml", "mitsuba_xml_meshes": "scene_mesh.xml", "camera": "camera.json",
                       "lights": "lights.json", "meshes": sorted(mesh_files.values()),
+                      "source_meshes": sorted(sources.values()),
                       "textures": sorted(textures.values())},
             "shapes": shapes_meta,
             "lights": [l.name for l in spec.lights],
@@ -431,7 +482,7 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
                 if len(loaded.shapes()) != n_exp:
                     raise SceneError(f"the exported {name} has {len(loaded.shapes())} shapes, expected {n_exp}; "
                                      "this is a shadowlab bug")
-        os.chmod(tmp, 0o755)
+        _publish_modes(tmp)
         _install(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

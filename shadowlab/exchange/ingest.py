@@ -35,6 +35,7 @@ from ..io.exr import check_finite, read_exr
 from ..metrics import compare_shaded, compare_visibility, penumbra_mask
 from ..reference import store
 from ..report import build
+from ..report.lights import light_info
 from ..report.outdir import claim_dir
 from ..scene.spec import load_spec, resolve
 
@@ -42,6 +43,37 @@ __all__ = ["ingest", "CHANNEL_AGAINST", "SHADED_AGAINST"]
 
 CHANNEL_AGAINST = ("V", "A")
 SHADED_AGAINST = ("shaded", "mitsuba")
+
+
+def channel_labels(labels, channel_of: dict) -> dict:
+    """``--label CHANNEL=TEXT`` (repeatable) -> {light: TEXT}; ``channel_of``: {light: channel}.
+
+    >>> channel_labels(["shadow.key=engine PCF 5x5"], {"key": "shadow.key"})
+    {'key': 'engine PCF 5x5'}
+    """
+    light_of = {c: n for n, c in channel_of.items()}
+    out = {}
+    for item in labels or ():
+        name, sep, text = item.partition("=")
+        name, text = name.strip(), text.strip()
+        if not sep or not name or not text:
+            raise InputError(f"--label {item!r}: expected CHANNEL=TEXT (a channel given with --channel) or a plain "
+                             "TEXT for the image")
+        if name not in light_of:
+            raise InputError(f"--label {item!r}: {name!r} is not one of the --channel channels "
+                             f"({', '.join(light_of) or 'none: --shaded has no channels'})")
+        out[light_of[name]] = text
+    return out
+
+
+def default_out(scene: str, image, root: Path = Path("reports/ingest")) -> Path:
+    """The default report directory of an ingest: reports/ingest/SCENE-IMAGE, with -2, -3, … added
+    when that exists already, so a new ingest never overwrites the previous one."""
+    stem = f"{Path(scene).stem}-{Path(image).stem}"
+    p, k = root / stem, 2
+    while p.exists():
+        p, k = root / f"{stem}-{k}", k + 1
+    return p
 
 
 def _channel_list(ch: dict) -> str:
@@ -113,13 +145,15 @@ def _extra_stats(x, t, se, valid) -> dict:
 
 def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None = None,
            against: str | None = None, resolution=None, out=None, base=None, gate=None,
-           label: str | None = None, force: bool = False) -> dict:
+           label: str | None = None, labels=(), force: bool = False) -> dict:
     """Compare ``image`` (an EXR) with the stored truth of ``scene``; returns the run dict (what
     ``metrics.json`` holds, plus ``images``). ``out``: write index.html, summary.md and
     metrics.json there (:func:`shadowlab.report.build`). ``resolution``: the reference's (W, H);
     default the image's size. ``gate``: a gate file, run on the image (exit 1 when it fails).
     ``out`` is never inside the store, and an existing directory shadowlab did not make is
-    written into only with ``force`` (:func:`shadowlab.report.outdir.claim_dir`)."""
+    written into only with ``force`` (:func:`shadowlab.report.outdir.claim_dir`). ``label``: the
+    image's name in the report (default its file name); ``labels``: ``CHANNEL=TEXT`` titles of
+    channels (``--label``), shown beside their light."""
 
     spec = load_spec(resolve(scene))
     image = Path(image)
@@ -190,6 +224,7 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
     truth_se = {n: np.asarray(truth.lights[n].A_se if against == "A" else truth.lights[n].V_se, np.float64)
                 for n in lights}
     label = label or image.name
+    titles = channel_labels(labels, {n: picked[n][0] for n in picked} if not shaded else {})
     per_light, vis_imgs = {}, {}
     notes = []
     if int(meta.get("supersampling", 1)) > 1:
@@ -252,9 +287,10 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
                       "supersampling": int(meta.get("supersampling", 1)),
                       "path": str(store.path_for(spec.name, res, base, frame=spec.frame)), "scene_hash": meta.get("scene_hash")},
         "lights": run_lights,
+        "light_info": light_info(spec.lights),   # the report's light summary (kind, size, what the truth is)
         "ingest": {"image": str(image), "mode": "shaded" if shaded else "visibility", "against": against,
                    "channels": ({n: picked[n][0] for n in run_lights} if not shaded else {"rgb": rgb_names}),
-                   "notes": notes},
+                   "notes": notes, "labels": titles},
         "techniques": {label: {"params": {"image": str(image), "against": against,
                                           **({"channels": {n: picked[n][0] for n in run_lights}} if not shaded
                                              else {"rgb": rgb_names})},

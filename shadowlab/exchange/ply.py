@@ -41,7 +41,8 @@ _FACE = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
 
 
 def write_ply(path, positions, normals, uvs, faces, comment: str = "") -> None:
-    """Write a triangle mesh (N×3 positions, N×3 normals, N×2 uvs, M×3 int faces) atomically."""
+    """Write a triangle mesh (N×3 positions, N×3 normals, N×2 uvs, M×3 int faces) atomically, mode
+    644 (readable by everyone, as a file written with the usual umask 022; ``mkstemp`` alone gives 600)."""
     P = np.asarray(positions, np.float64).reshape(-1, 3)
     N = np.asarray(normals, np.float64).reshape(-1, 3)
     UV = np.asarray(uvs, np.float64).reshape(-1, 2)
@@ -71,6 +72,7 @@ def write_ply(path, positions, normals, uvs, faces, comment: str = "") -> None:
             fh.write(header.encode("ascii"))
             fh.write(v.tobytes())
             fh.write(f.tobytes())
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

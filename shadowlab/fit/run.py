@@ -400,6 +400,10 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
     more = [(f, t) for _, t, _, f in prepared[1:]]
     plans, skipped = {}, {}
     for t in techs:
+        why = tbase.get(t).unsupported(sc.spec) if all_techniques else None
+        if why:
+            skipped[t] = why
+            continue
         s = {**(pre.values.get(t, {}) if pre else {}), **sets_by.get(t, {})}
         try:
             plans[t] = plan(t, frame, params=names, method=method, loss=loss or default_loss(t), sets=s,

@@ -6,6 +6,11 @@ see :mod:`shadowlab.report.images`) and, when the statistical test ran, the p-va
 −log10 p of the pixel's smallest p-value, black at p = 1 and white at the Šidák level α_pixel;
 pixels that fail the Z-test are red, untested pixels dark blue. Shaded images share one exposure
 (the reference's 99th-percentile luminance → 0.9); visibility is shown as grey = visibility.
+
+Every heat map has its colour bar under it, drawn by CSS gradients (no extra image): the error
+map's from −scale (blue) through 0 (white) to +scale (red), which is exactly the map's colour ramp
+(linear in sRGB between the three colours); the p-value map's from p = 1 (black) to p = α_pixel
+(white), with the two special colours.
 """
 
 from __future__ import annotations
@@ -26,7 +31,11 @@ _CSS = """body{font-family:system-ui,sans-serif;margin:1.5em;color:#222}
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:3px 7px;text-align:left;
 vertical-align:top;font-size:13px}.pass{color:#1a7f37;font-weight:600}.fail{color:#b2182b;font-weight:600}
 img{width:256px;image-rendering:pixelated;display:block}.note{color:#555;font-size:13px;max-width:60em}
-code{font-size:12px}"""
+code{font-size:12px}.cbar{width:256px;height:10px;margin-top:3px}
+.err{background:linear-gradient(to right,rgb(33,102,172),#fff,rgb(178,24,43))}
+.pv{background:linear-gradient(to right,#000,#fff)}
+.ticks{width:256px;display:flex;justify-content:space-between;font-size:11px;color:#444}
+.sw{display:inline-block;width:.8em;height:.8em;vertical-align:-1px;margin-right:.2em}"""
 
 
 def _e(s) -> str:
@@ -55,7 +64,20 @@ def pvalue_map(p, failed, alpha_value: float) -> np.ndarray:
     return out
 
 
-def _images(r) -> list[tuple[str, str]]:
+def _err_legend(scale: float) -> str:
+    s = f"{scale:.3g}"
+    return (f'<div class="cbar err" title="colour scale"></div><div class="ticks"><span>&minus;{s}</span>'
+            f"<span>0</span><span>+{s}</span></div>")
+
+
+def _pvalue_legend(alpha: float) -> str:
+    return ('<div class="cbar pv" title="colour scale"></div><div class="ticks"><span>p = 1</span>'
+            f'<span>p = {alpha:.2g}</span></div><div class="ticks"><span><i class="sw" style="background:rgb(220,30,30)">'
+            '</i>fails</span><span><i class="sw" style="background:rgb(20,30,80)"></i>untested</span></div>')
+
+
+def _images(r) -> list[tuple[str, str, str]]:
+    """(title, PNG data URI, legend HTML) of a failed gate's images."""
     im = r.images
     cand, ref, err = im.get("candidate"), im.get("reference"), im.get("error")
     if cand is None or ref is None:
@@ -63,17 +85,18 @@ def _images(r) -> list[tuple[str, str]]:
     out = []
     if np.asarray(ref).ndim == 3:
         exp = _im.common_exposure(ref)
-        out += [("candidate", _uri(_im.shaded_png(cand, exp))), ("reference", _uri(_im.shaded_png(ref, exp)))]
+        out += [("candidate", _uri(_im.shaded_png(cand, exp)), ""), ("reference", _uri(_im.shaded_png(ref, exp)), "")]
     else:
-        out += [("candidate", _uri(_im.visibility_png(np.clip(cand, 0, 1)))),
-                ("reference", _uri(_im.visibility_png(np.clip(ref, 0, 1))))]
+        out += [("candidate", _uri(_im.visibility_png(np.clip(cand, 0, 1))), ""),
+                ("reference", _uri(_im.visibility_png(np.clip(ref, 0, 1))), "")]
     e = np.where(np.asarray(im.get("valid", True)), _im.luminance(err), 0.0)
     scale = _im.error_scale(e)
-    out.append((f"error (candidate − reference), ±{scale:.3g}", _uri(encode_png(_im.signed_error_heatmap(e, scale)))))
+    out.append((f"error (candidate − reference), ±{scale:.3g}", _uri(encode_png(_im.signed_error_heatmap(e, scale))),
+                _err_legend(scale)))
     if im.get("pvalue") is not None:
         a = float(r.info.get("alpha_value", 1e-6))
         out.append((f"p-value map (white: p = α_pixel {a:.2g}; red: fails)",
-                    _uri(encode_png(pvalue_map(im["pvalue"], im["failed_pixels"], a)))))
+                    _uri(encode_png(pvalue_map(im["pvalue"], im["failed_pixels"], a))), _pvalue_legend(a)))
     return out
 
 
@@ -111,8 +134,8 @@ def page_html(results, title: str = "shadowlab gate") -> str:
         p.append("</table>")
         imgs = _images(r)
         if imgs:
-            p.append("<table><tr>" + "".join(f"<th>{_e(t)}</th>" for t, _ in imgs) + "</tr><tr>"
-                     + "".join(f'<td><img src="{u}" alt="{_e(t)}"></td>' for t, u in imgs) + "</tr></table>")
+            p.append("<table><tr>" + "".join(f"<th>{_e(t)}</th>" for t, _, _ in imgs) + "</tr><tr>"
+                     + "".join(f'<td><img src="{u}" alt="{_e(t)}">{lg}</td>' for t, u, lg in imgs) + "</tr></table>")
     p.append("</body></html>")
     return "\n".join(p) + "\n"
 

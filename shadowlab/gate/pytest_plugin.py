@@ -49,7 +49,7 @@ from ..io.exr import read_exr, split_rgb, write_exr
 from ..io.jsonio import read_json, write_json_atomic
 from .check import GateResult, _as_image, check
 from .html import write_page
-from .thresholds import _ALL_METRICS, STAT_DEFAULTS, parse_thresholds
+from .thresholds import from_keywords
 
 _written_key = pytest.StashKey[list]()      # config: baselines written this run
 _skipped_key = pytest.StashKey[list]()      # config: baselines not written (their test failed)
@@ -115,29 +115,11 @@ class ShadowlabGate:
                              "with '/' between parts (e.g. 'pcf/contact')")
         return self.dir / f"{name}.exr", self.dir / f"{name}.json"
 
-    @staticmethod
-    def _split(thresholds: dict):
-        use_stat = thresholds.pop("statistical", None)
-        if use_stat is not None and not isinstance(use_stat, bool):
-            raise InputError(f"shadowlab_gate: statistical must be True or False, got {use_stat!r}")
-        unknown = [k for k in thresholds if k not in STAT_DEFAULTS and k not in _ALL_METRICS]
-        if unknown:
-            raise InputError(f"shadowlab_gate: unknown threshold(s) {', '.join(unknown)}; statistical settings: "
-                             f"{', '.join(STAT_DEFAULTS)}; budget metrics: {', '.join(_ALL_METRICS)}")
-        stat = {k: v for k, v in thresholds.items() if k in STAT_DEFAULTS}
-        budget = {k: v for k, v in thresholds.items() if k not in STAT_DEFAULTS}
-        spec = {}
-        if stat or use_stat or (use_stat is None and not budget):
-            spec["statistical"] = stat
-        if budget:
-            spec["budget"] = budget
-        return parse_thresholds(spec, where="shadowlab_gate")
-
     def __call__(self, image, name: str, *, variance=None, target: str | None = None, valid=None, penumbra=None,
                  stamp: str | None = None, **thresholds):
 
         exr, meta_path = self.paths(name)
-        th = self._split(dict(thresholds))
+        th = from_keywords(thresholds, where="shadowlab_gate")
         arr = np.asarray(image)
         if target is None:
             target = "shaded" if arr.ndim == 3 and arr.shape[-1] == 3 else "visibility"

@@ -168,3 +168,31 @@ def parse_thresholds(spec, where: str = "thresholds", stat_defaults: Mapping | N
         return Thresholds(statistical=st, budget=bd)
     except InputError as e:
         raise InputError(f"{where}: {e}") from None
+
+
+def from_keywords(thresholds: Mapping, where: str = "gate") -> Thresholds:
+    """Thresholds from flat keyword arguments, as ``shadowlab_gate(img, name, **kw)`` and
+    :func:`shadowlab.gate_image` take them: the statistical settings (``alpha``, ``atol``, ...;
+    ``statistical=True`` for all defaults) and budget limits (``flip=0.05``, ``rmse=...``). Without
+    any, the statistical test with its defaults.
+
+    >>> t = from_keywords({"rmse": 0.01})
+    >>> t.statistical is None, t.budget
+    (True, {'rmse': 0.01})
+    """
+    kw = dict(thresholds)
+    use_stat = kw.pop("statistical", None)
+    if use_stat is not None and not isinstance(use_stat, bool):
+        raise InputError(f"{where}: statistical must be True or False, got {use_stat!r}")
+    unknown = [k for k in kw if k not in STAT_DEFAULTS and k not in _ALL_METRICS]
+    if unknown:
+        raise InputError(f"{where}: unknown threshold(s) {', '.join(unknown)}; statistical settings: "
+                         f"{', '.join(STAT_DEFAULTS)}; budget metrics: {', '.join(_ALL_METRICS)}")
+    stat = {k: v for k, v in kw.items() if k in STAT_DEFAULTS}
+    budget = {k: v for k, v in kw.items() if k not in STAT_DEFAULTS}
+    spec = {}
+    if stat or use_stat or (use_stat is None and not budget):
+        spec["statistical"] = stat
+    if budget:
+        spec["budget"] = budget
+    return parse_thresholds(spec, where=where)

@@ -94,15 +94,19 @@ class FrameContext:
         return self._cache["own_screen"]
 
     def light_view(self, light_name: str, res: int | None = None, bits: int | None = None,
-                   backface: bool = False, fit=None) -> LightView:
-        """The light's depth map, cast once per (light, resolution, depth bits, back faces, fit);
-        ``fit`` None is :class:`~shadowlab.render.lightview.SceneSphere` (the whole scene)."""
+                   backface: bool = False, fit=None, layers: int = 1) -> LightView:
+        """The light's depth map, cast once per (light, resolution, depth bits, back faces, fit,
+        layers); ``fit`` None is :class:`~shadowlab.render.lightview.SceneSphere` (the whole scene);
+        ``layers`` > 1 keeps that many surfaces per texel (the rasterizer's bias)."""
         spec = self.scene.spec.light(light_name)
         self.require_mitsuba_geometry()
         fit = SceneSphere() if fit is None else fit
         key = (light_name, int(res or spec.shadow_map), int(bits or spec.depth_bits), bool(backface), fit)
+        if layers > 1:
+            key += (int(layers),)
         if key not in self._views:
-            self._views[key] = light_view(self.scene, spec, res=key[1], bits=key[2], backface=key[3], fit=fit)
+            self._views[key] = light_view(self.scene, spec, res=key[1], bits=key[2], backface=key[3], fit=fit,
+                                          layers=int(layers))
         return self._views[key]
 
     def triangles(self, segments: int = 64) -> np.ndarray:

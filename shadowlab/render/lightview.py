@@ -430,6 +430,10 @@ class LightView:
     z: np.ndarray       # (F, N, N) decoded light-space depth (far where empty)
     slope: np.ndarray   # (F, N, N) max NDC depth slope per texel
     hit: np.ndarray     # (F, N, N) bool
+    #: surfaces behind the first along each texel's ray, (L − 1, F, N, N) each, for the rasterizer's
+    #: bias (every fragment biased, the smallest kept): their quantised NDC depth (1 = none) and slope
+    layer_depth: np.ndarray | None = None
+    layer_slope: np.ndarray | None = None
     _dr: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -445,18 +449,24 @@ class LightView:
     def nfaces(self):
         return len(self.proj.faces)
 
+    @property
+    def layers(self) -> int:
+        """Surfaces kept per texel: 1, or 1 + the layers behind the first."""
+        return 1 if self.layer_depth is None else 1 + len(self.layer_depth)
+
     def dr(self, name: str):
         """Flat Dr.Jit Float of the map ``name`` ('depth', 'z', 'slope'), made once."""
         if name not in self._dr:
             self._dr[name] = mi.Float(np.ascontiguousarray(getattr(self, name), np.float32).ravel())
         return self._dr[name]
 
-    def fetch(self, name: str, face, ix, iy):
-        """Texel values at integer texel coordinates, clamped to the face (Dr.Jit)."""
+    def fetch(self, name: str, face, ix, iy, layer: int = 0):
+        """Texel values at integer texel coordinates, clamped to the face (Dr.Jit); ``layer`` k ≥ 1
+        of ``layer_depth`` / ``layer_slope`` is the k-th surface behind the first."""
         N = self.res
         ix = dr.clip(mi.Int32(ix), 0, N - 1)
         iy = dr.clip(mi.Int32(iy), 0, N - 1)
-        idx = mi.UInt32(face) * (N * N) + mi.UInt32(iy * N + ix)
+        idx = (mi.UInt32(face) + (layer - 1 if layer else 0) * self.nfaces) * (N * N) + mi.UInt32(iy * N + ix)
         return dr.gather(mi.Float, self.dr(name), idx)
 
     def lookup(self, p):
@@ -535,12 +545,15 @@ def texel_rays(proj: Projection):
 
 
 def light_view(scene, light, res: int | None = None, bits: int | None = None, backface: bool = False,
-               fit=None) -> LightView:
+               fit=None, layers: int = 1) -> LightView:
     """Render ``light``'s depth map by ray casting (module docstring has the conventions).
 
     ``backface=True`` keeps the first surface facing away from the light (front-face culling,
     [Buljan 2020, §2.3]). The light's own emitter shape never occludes.
     ``fit``: which part of the scene the map covers (None: :class:`SceneSphere`).
+    ``layers`` > 1 also keeps the next ``layers`` − 1 surfaces along each texel's ray (same
+    skipping rules), so that a rasterizer's bias, added to every fragment before the depth test,
+    can be emulated (:func:`shadowlab.techniques.shadow_map.stored_depth`).
     """
 
     proj = projection(light, scene, res, fit)
@@ -558,6 +571,28 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     shapes = scene.mi_scene.shapes_dr()
     own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
     si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, bool(getattr(scene, "has_alpha", False)))
+    h, slope, dq, zq = _texel_depths(proj, si, bits)
+    extra, before = [], h
+    for _ in range(layers - 1):  # a few layers, each one wavefront over every texel
+        si = cast_first_hit(scene.mi_scene, si.spawn_ray(ray.d), backface, own_ptr,
+                            bool(getattr(scene, "has_alpha", False)))
+        hk, sk, dk, _ = _texel_depths(proj, si, bits)
+        hk &= before                 # a ray that already left the scene meets nothing more
+        extra.append((np.where(hk, dk, 1.0).astype(np.float32), np.where(hk, sk, 0.0).astype(np.float32)))
+        before = hk
+    shp = (F, N, N)
+    lay = {}
+    if extra:
+        lay = {"layer_depth": np.stack([e[0].reshape(shp) for e in extra]),
+               "layer_slope": np.stack([e[1].reshape(shp) for e in extra])}
+    return LightView(light=light, proj=proj, bits=bits, backface=backface, depth=dq.reshape(shp),
+                     z=zq.astype(np.float32).reshape(shp), slope=slope.astype(np.float32).reshape(shp),
+                     hit=h.reshape(shp), **lay)
+
+
+def _texel_depths(proj, si, bits):
+    """(hit, slope, quantised NDC depth, decoded light-space z) of every texel's hit ``si``."""
+    N, F = proj.res, len(proj.faces)
     hit = si.is_valid()
     # light-space z and the caster's plane in light space
     face_idx = np.repeat(np.arange(F), N * N)
@@ -589,10 +624,7 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     d = np.where(h, proj.ndc_depth(np.clip(z, n_, f_), face=fi), 1.0)
     dq = quantise(d, bits)
     zq = np.where(h, proj.linear_depth(dq.astype(np.float64), face=fi), f_)
-    shp = (F, N, N)
-    return LightView(light=light, proj=proj, bits=bits, backface=backface, depth=dq.reshape(shp),
-                     z=zq.astype(np.float32).reshape(shp), slope=slope.astype(np.float32).reshape(shp),
-                     hit=h.reshape(shp))
+    return h, slope, dq, zq
 
 
 MAX_SKIPS = 16         # surfaces a texel ray may skip (the light's own shape, back faces)

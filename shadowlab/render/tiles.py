@@ -127,6 +127,8 @@ def face_ndc(face, p):
 class TiledView:
     """The rendered tiles of a virtual map (see the module docstring)."""
 
+    layers = 1                # one surface per texel (the first_hit bias mode)
+
     light: object
     proj: Projection          # the base map (one face): near, far, matrices of every tile
     bits: int

@@ -10,6 +10,16 @@ brighter. Three-channel images are compared by luminance. Per light, and for the
 all techniques share one colour scale (the largest of their 99th percentiles of |error|), so equal
 colours mean equal errors across techniques; the report prints each scale next to its colour bar.
 Shaded images share one exposure per report (the truth's 99th-percentile luminance -> 0.9).
+Pixels on a light the camera sees (``run.images.emitter``, else guessed from the images, see
+:mod:`shadowlab.report.images`) and their neighbours are left out of the colour scales: a light in
+view shows its radiance in ``mi.render`` and would set the scale.
+
+The page, top to bottom: the gate verdict (PASS/FAIL and its checks, when the run has ``gate``:
+``shadowlab ingest --gate``) and what was ingested; the metrics in two tables no wider than a
+laptop window (the key columns :data:`KEY_METRICS`, then the others); charts
+(:mod:`shadowlab.report.charts`: per-light bars, error against run time, error by distance band
+and cascade); the image comparator (:mod:`shadowlab.report.comparator`); the lights
+(``run.light_info``, :mod:`shadowlab.report.lights`) and the ground truth; a section per technique.
 
 Building is atomic and safe: everything is validated first (bad input raises ``InputError`` and
 leaves ``out_dir`` untouched), then written into a temporary sibling directory and moved into
@@ -34,7 +44,10 @@ from urllib.parse import quote
 import numpy as np
 
 from shadowlab.errors import InputError
+from shadowlab.report import charts as _charts
+from shadowlab.report import comparator as _cmp
 from shadowlab.report import images as _im
+from shadowlab.report.lights import light_rows
 from shadowlab.report.outdir import MARKER, claim_dir, marker_text
 
 __all__ = ["build", "summary_table", "stats_tables", "validate", "run_to_json", "to_jsonable", "higher_is_better"]
@@ -44,6 +57,8 @@ OUTPUT_DIRS = ("img",)
 _HIGHER_IS_BETTER_PREFIXES = ("psnr", "ssim")
 _IMG_CSS_WIDTH = 256
 _NA = "n/a"
+#: the metrics of the page's first table (with time_s); the others go to a second table
+KEY_METRICS = ("rmse", "rmse_penumbra", "vis_rmse_penumbra", "leak_rate", "overdark_rate", "psnr", "ssim", "flip")
 
 
 # --------------------------------------------------------------------------------------------
@@ -197,6 +212,10 @@ def validate(run: Mapping, need_images: bool = True) -> dict:
             if ln not in lights:
                 raise InputError(f"{where}.per_light.{ln}: {ln!r} is not in run.lights {list(lights)}")
             _check_metric_dict(d, f"{where}.per_light.{ln}")
+    info = run.get("light_info")
+    if info is not None:
+        for ln, d in _mapping(info, "run.light_info").items():
+            _mapping(d, f"run.light_info.{ln}")
     run_to_json(run)  # every non-image value must be JSON-serialisable
 
     if not need_images:
@@ -222,6 +241,8 @@ def validate(run: Mapping, need_images: bool = True) -> dict:
     out = {"truth": frame(_get(imgs, "truth", "run.images"), "run.images.truth")}
     mts = imgs.get("mitsuba")
     out["mitsuba"] = None if mts is None else _image(mts, "run.images.mitsuba", hw, (3, 0, 1))
+    em = imgs.get("emitter")  # optional: the pixels on a light (images.emitter_pixels)
+    out["emitter"] = None if em is None else _image(em, "run.images.emitter", hw, (0,)) > 0.5
     timgs = _mapping(_get(imgs, "techniques", "run.images"), "run.images.techniques")
     for name in timgs:
         if name not in techs:
@@ -265,10 +286,11 @@ def _metric_columns(techs: Mapping) -> list[str]:
     return cols
 
 
-def _table_cells(run: Mapping) -> tuple[list[str], list[str], list[list[tuple[str, bool]]]]:
-    """(column names incl. time_s, technique names, rows of (formatted value, is_best))."""
+def _table_cells(run: Mapping, cols=None) -> tuple[list[str], list[str], list[list[tuple[str, bool]]]]:
+    """(column names, technique names, rows of (formatted value, is_best)); ``cols``: the columns,
+    default every metric and time_s."""
     techs = run["techniques"]
-    cols = _metric_columns(techs) + ["time_s"]
+    cols = _metric_columns(techs) + ["time_s"] if cols is None else list(cols)
     names = list(techs)
 
     def val(name, col):
@@ -359,6 +381,24 @@ img.cbar {{ width: {_IMG_CSS_WIDTH}px; height: 10px; image-rendering: pixelated;
 .ticks {{ width: {_IMG_CSS_WIDTH}px; display: flex; justify-content: space-between; font-size: .75em; color: #444; }}
 .note {{ font-size: .85em; color: #555; }}
 code {{ font-size: .9em; }}
+.wide {{ max-width: 100%; overflow-x: auto; }}
+table.metrics td.text, table.lights td, table.lights th {{ text-align: left; max-width: 40em; }}
+.verdict {{ font-size: 1.1em; padding: .5em .8em; margin: .6em 0; border-radius: 4px; max-width: 60em; }}
+.verdict .word {{ font-size: 1.5em; font-weight: 700; margin-right: .4em; vertical-align: middle; }}
+.verdict.pass {{ background: #e6f4ea; border: 1px solid #1a7f37; color: #1a7f37; }}
+.verdict.fail {{ background: #fbe9eb; border: 1px solid #b2182b; color: #b2182b; }}
+table.checks th, table.checks td {{ text-align: left; }}
+table.checks td:nth-child(4), table.checks td:nth-child(5) {{ text-align: right; white-space: nowrap; }}
+td.pass {{ color: #1a7f37; font-weight: 600; }}
+td.fail {{ color: #b2182b; font-weight: 600; }}
+ul.facts {{ font-size: .9em; color: #333; padding-left: 1.2em; }}
+.charts {{ display: flex; flex-wrap: wrap; gap: 1em 2em; }}
+figure.chart {{ margin: 0; }}
+figure.chart svg {{ display: block; max-width: 100%; height: auto; }}
+.chart-legend {{ font-size: .8em; display: flex; flex-wrap: wrap; gap: .2em 1em; }}
+.chart-legend i {{ display: inline-block; width: .8em; height: .8em; margin-right: .3em; vertical-align: -1px; }}
+a.open {{ font-size: .6em; font-weight: normal; margin-left: .6em; }}
+details pre {{ white-space: pre-wrap; word-break: break-all; font-size: .8em; }}
 """
 
 
@@ -434,6 +474,24 @@ def bands_markdown(run: Mapping) -> str:
             parts += ["| " + " | ".join(_md_escape(c) for c in r) + " |" for r in rows]
             parts.append("")
     return "\n".join(parts)
+
+
+def gate_markdown(run: Mapping) -> str:
+    """The gate's verdict and failed checks for summary.md (``run["gate"]``); empty without a gate.
+
+    >>> print(gate_markdown({"gate": {"file": "g.toml", "passed": False, "failed": ["g stat.bias"]}}), end="")
+    <BLANKLINE>
+    ## Gate: FAIL (g.toml)
+    <BLANKLINE>
+    Failed: g stat.bias
+    """
+    g = run.get("gate")
+    if not isinstance(g, Mapping):
+        return ""
+    failed = g.get("failed") or []
+    lines = ["", f"## Gate: {'PASS' if g.get('passed') else 'FAIL'} ({_md_escape(str(g.get('file', '')))})", ""]
+    lines.append("Failed: " + ", ".join(_md_escape(str(f)) for f in failed) if failed else "Every check passed.")
+    return "\n".join(lines) + "\n"
 
 
 def stats_markdown(run: Mapping) -> str:
@@ -551,6 +609,95 @@ def _metric_line(d: Mapping) -> str:
     return " · ".join(f"{_e(k)} {_e(_fmt(v))}" for k, v in d.items())
 
 
+def _table_html(run: Mapping, cols) -> str:
+    """One metrics table (technique names link to their sections; best value per column in bold)."""
+    cols, names, rows = _table_cells(run, cols)
+    p = ['<div class="wide"><table class="metrics"><thead><tr><th>technique</th>']
+    p += [f"<th>{_e(c)}</th>" for c in cols]
+    p.append("</tr></thead><tbody>")
+    for i, (n, row) in enumerate(zip(names, rows)):
+        cells = "".join(f"<td><b>{_e(s)}</b></td>" if b else f"<td>{_e(s)}</td>" for s, b in row)
+        p.append(f'<tr><td><a href="#t{i}">{_e(n)}</a></td>{cells}</tr>')
+    p.append("</tbody></table></div>")
+    return "".join(p)
+
+
+def _metrics_tables(run: Mapping) -> list[str]:
+    """The key columns (:data:`KEY_METRICS` that the run has, and time_s), then the others."""
+    all_cols = _metric_columns(run["techniques"])
+    key = [c for c in KEY_METRICS if c in all_cols] + ["time_s"]
+    rest = [c for c in all_cols if c not in key]
+    p = [_table_html(run, key)]
+    if rest:
+        p += ['<p class="note">More metrics (suffix <code>_penumbra</code>: over the penumbra pixels only):</p>',
+              _table_html(run, rest)]
+    return p
+
+
+def _verdict(run: Mapping) -> list[str]:
+    """The gate's verdict at the top of the page (``run["gate"]``, as ``shadowlab ingest --gate``
+    writes it): PASS or FAIL, the gate file, and a row per check."""
+    g = run.get("gate")
+    if not isinstance(g, Mapping):
+        return []
+    ok = bool(g.get("passed"))
+    word, cls = ("PASS", "pass") if ok else ("FAIL", "fail")
+    failed = g.get("failed") or []
+    p = [f'<div class="verdict {cls}" id="verdict"><span class="word">{word}</span> gate '
+         f"<code>{_e(g.get('file', ''))}</code>"
+         + (f": {len(failed)} check{'s' if len(failed) != 1 else ''} failed ({_e(', '.join(failed))})" if failed
+            else ": every check passed") + "</div>"]
+    checks = [c for c in g.get("checks") or [] if isinstance(c, Mapping)]
+    if checks:
+        p.append('<div class="wide"><table class="metrics checks"><thead><tr><th>gate</th><th>check</th><th>result</th>'
+                 "<th>value</th><th>threshold</th><th>details</th></tr></thead><tbody>")
+        for c in sorted(checks, key=lambda c: bool(c.get("passed"))):  # failed checks first
+            r, rc = ("PASS", "pass") if c.get("passed") else ("FAIL", "fail")
+            p.append(f"<tr><td>{_e(c.get('gate', ''))}</td><td><code>{_e(c.get('check', ''))}</code></td>"
+                     f'<td class="{rc}">{r}</td><td>{_e(_fmt(c.get("value")))}</td>'
+                     f"<td>{_e(c.get('op', ''))} {_e(_fmt(c.get('threshold')))}</td><td>{_e(c.get('text', ''))}</td></tr>")
+        p.append("</tbody></table></div>")
+    return p
+
+
+def _ingest_facts(run: Mapping) -> list[str]:
+    """What ``shadowlab ingest`` compared (``run["ingest"]``), as a short list instead of JSON."""
+    ing = run.get("ingest")
+    if not isinstance(ing, Mapping):
+        return []
+    ch = ing.get("channels") or {}
+    chs = ", ".join(f"{_e(k)} ← <code>{_e(v if isinstance(v, str) else ', '.join(map(str, v)))}</code>"
+                    for k, v in ch.items())
+    facts = [f"image <code>{_e(ing.get('image', ''))}</code>",
+             f"compared as: {_e(ing.get('mode', ''))}, against the truth's <code>{_e(ing.get('against', ''))}</code>"]
+    if chs:
+        facts.append(f"channels: {chs}")
+    facts += [f"note: {_e(n)}" for n in ing.get("notes") or []]
+    return ['<ul class="facts">' + "".join(f"<li>{f}</li>" for f in facts) + "</ul>"]
+
+
+def _lights_html(run: Mapping) -> list[str]:
+    """The light summary: a row per light (kind, size and what its truth is, ``run["light_info"]``)."""
+    info = run.get("light_info")
+    names = list(info) if isinstance(info, Mapping) and info else list(run["lights"])
+    if not names:
+        return []
+    if not isinstance(info, Mapping):
+        return [f'<p class="note">Lights: {_e(", ".join(names))}.</p>']
+    rows = light_rows(names, info)
+    return ['<table class="metrics lights"><thead><tr><th>light</th><th>kind</th><th>size</th><th>truth</th></tr>'
+            "</thead><tbody>" + "".join(f"<tr><td>{_e(n)}</td><td>{_e(k)}</td><td>{_e(sz)}</td>"
+                                        f'<td class="text">{_e(nt) or "as named"}</td></tr>' for n, k, sz, nt in rows)
+            + "</tbody></table>"]
+
+
+def _excluded(emitter, truth_shaded, other) -> np.ndarray | None:
+    """The pixels left out of a shaded error map's colour scale: those on a light (``emitter``,
+    else :func:`images.emitter_guess`) and their neighbours; None when there are none."""
+    em = emitter if emitter is not None else _im.emitter_guess(truth_shaded, other)
+    return _im.grow(em) if em.any() else None
+
+
 def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
     """Write all PNGs into ``img_dir`` and return the HTML text."""
     lights = list(run["lights"])
@@ -570,72 +717,86 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
     }
     truth_lum = _im.luminance(truth["shaded"])
 
-    # Shared colour scale per light and for the shaded image, across techniques.
+    # Shared colour scale per light and for the shaded image, across techniques; pixels on a light
+    # (and their neighbours) do not count.
+    emitter = imgs.get("emitter")
+    vis_out = None if emitter is None or not emitter.any() else _im.grow(emitter)
     vis_err = {
         name: {ln: _im.luminance(imgs["techniques"][name]["vis"][ln]) - _im.luminance(truth["vis"][ln]) for ln in lights}
         for name in techs
     }
     shaded_err = {name: _im.luminance(imgs["techniques"][name]["shaded"]) - truth_lum for name in techs}
-    vis_scale = {ln: max([_im.error_scale(vis_err[n][ln]) for n in techs], default=1e-6) for ln in lights}
-    shaded_scale = max([_im.error_scale(e) for e in shaded_err.values()], default=1e-6)
+    vis_scale = {ln: max([_im.error_scale(vis_err[n][ln], exclude=vis_out) for n in techs], default=1e-6)
+                 for ln in lights}
+    shaded_scale = max([_im.error_scale(e, exclude=_excluded(emitter, truth["shaded"], imgs["techniques"][n]["shaded"]))
+                        for n, e in shaded_err.items()], default=1e-6)
 
     p = [
         "<!DOCTYPE html>",
         '<html lang="en"><head><meta charset="utf-8">',
+        '<meta name="viewport" content="width=device-width, initial-scale=1">',
         f"<title>shadowlab: {_e(run['scene'])} {w}×{h}</title>",
-        f"<style>{_CSS}</style></head><body>",
+        f"<style>{_CSS}{_cmp.CSS}</style></head><body>",
         f"<h1>shadowlab report: {_e(run['scene'])} — {w}×{h}</h1>",
-        f'<p class="ref">{_e(_reference_line(run))}</p>',
     ]
+    p += _verdict(run)
+    p += _ingest_facts(run)
+    p.append(f'<p class="ref">{_e(_reference_line(run))}</p>')
     extra_ref = {k: v for k, v in run["reference"].items() if k not in ("spp", "max_std_error")}
     if extra_ref:
         p.append(f'<p class="note">Reference details: {_metric_line_any(extra_ref)}</p>')
 
-    # metrics table
-    cols, names, rows = _table_cells(run)
     p.append("<h2>Metrics</h2>")
-    p.append('<table class="metrics"><thead><tr><th>technique</th>')
-    p += [f"<th>{_e(c)}</th>" for c in cols]
-    p.append("</tr></thead><tbody>")
-    for i, (n, row) in enumerate(zip(names, rows)):
-        cells = "".join(f"<td><b>{_e(s)}</b></td>" if b else f"<td>{_e(s)}</td>" for s, b in row)
-        p.append(f'<tr><td><a href="#t{i}">{_e(n)}</a></td>{cells}</tr>')
-    p.append("</tbody></table>")
+    p += _metrics_tables(run)
     p.append(
         '<p class="note">Best value per column in bold (highest for psnr/ssim, lowest for errors, rates and '
         f"time). {_NA}: not available; NaN/inf are stored as null in metrics.json. Heat maps show the signed "
         "error technique − truth: <span style=\"color:#2166ac\">blue = technique darker</span>, white = equal, "
         "<span style=\"color:#b2182b\">red = technique brighter</span>; three-channel images are compared by "
-        "luminance; for each light (and for the shaded image) all techniques share one colour scale. "
+        "luminance; for each light (and for the shaded image) all techniques share one colour scale, the 99th "
+        "percentile of |error| without the pixels on a light seen by the camera and their neighbours. "
         f"Visibility: grey level = visibility. Shaded images: common exposure {_e(_fmt(exposure))} "
         "(truth 99th-percentile luminance → 0.9), sRGB.</p>"
     )
+    charts = _charts.run_charts(run)
+    if charts:
+        p += ["<h2>Charts</h2>", charts]
 
     # ground truth
-    p.append("<h2>Ground truth</h2>")
-    p.append('<table class="grid"><tr><th></th><th>truth (shaded)</th>')
+    g = ["<h2>Lights and ground truth</h2>"]
+    g += _lights_html(run)
+    g.append('<table class="grid"><tr><th></th><th>truth (shaded)</th>')
+    cmp_items, cmp_last = [], []
     if imgs["mitsuba"] is not None:
-        p.append("<th>Mitsuba <code>mi.render</code></th><th>signed error (mi.render − truth)</th>")
-    p.append("</tr><tr><th class=\"row\">shaded</th>")
-    p.append(f"<td>{_img_tag(truth_shaded, 'truth shaded')}</td>")
+        g.append("<th>Mitsuba <code>mi.render</code></th><th>signed error (mi.render − truth)</th>")
+    g.append("</tr><tr><th class=\"row\">shaded</th>")
+    g.append(f"<td>{_img_tag(truth_shaded, 'truth shaded')}</td>")
     if imgs["mitsuba"] is not None:
         mts = put("mitsuba.png", _im.shaded_png(imgs["mitsuba"], exposure))
         merr = _im.luminance(imgs["mitsuba"]) - truth_lum
-        mscale = _im.error_scale(merr)
+        mscale = _im.error_scale(merr, exclude=_excluded(emitter, truth["shaded"], imgs["mitsuba"]))
         merr_f = put("mitsuba_err.png", _im.encode_png(_im.signed_error_heatmap(merr, mscale)))
-        p.append(f"<td>{_img_tag(mts, 'Mitsuba mi.render')}</td>")
-        p.append(f"<td>{_img_tag(merr_f, 'signed error mi.render - truth')}{_legend(mscale)}</td>")
-    p.append("</tr></table>")
+        g.append(f"<td>{_img_tag(mts, 'Mitsuba mi.render')}</td>")
+        g.append(f"<td>{_img_tag(merr_f, 'signed error mi.render - truth')}{_legend(mscale)}</td>")
+        cmp_last.append(_cmp.item("mi.render (Mitsuba direct)", [_cmp.layer(
+            "shaded", f"img/{mts}", f"img/{truth_shaded}", f"img/{merr_f}", _fmt(mscale))], a_label="mi.render"))
+    g.append("</tr></table>")
+    g.append('<p class="note">Pixels on a light the camera sees (and their neighbours) are left out of the '
+             "colour scales: mi.render shows the light's radiance there, the truth has no shading point.</p>")
 
     # per technique
+    tp = []
     for i, name in enumerate(techs):
         t = techs[name]
         ti = imgs["techniques"][name]
         tag = f"t{i}_{_slug(name)}"
-        p.append(f'<h2 id="t{i}">{_e(name)}</h2>')
+        cmp_i = len(cmp_items)
+        layers = []
+        tp.append(f'<h2 id="t{i}">{_e(name)} <a class="open" href="#cmp" data-cmp-item="{cmp_i}" '
+                  'data-cmp-layer="0">compare</a></h2>')
         params = " ".join(f"<code>{_e(k)}={_e(json.dumps(to_jsonable(v)))}</code>" for k, v in t["params"].items())
-        p.append(f'<p class="note">time {_e(_fmt(t["time_s"]))} s. Parameters: {params or "none"}</p>')
-        p.append(
+        tp.append(f'<p class="note">time {_e(_fmt(t["time_s"]))} s. Parameters: {params or "none"}</p>')
+        tp.append(
             '<table class="grid"><tr><th></th><th>technique</th><th>truth</th>'
             "<th>signed error (technique − truth)</th></tr>"
         )
@@ -645,52 +806,65 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
                 f"{tag}_vis_{j}_{_slug(ln)}_err.png",
                 _im.encode_png(_im.signed_error_heatmap(vis_err[name][ln], vis_scale[ln])),
             )
+            layers.append(_cmp.layer(f"{ln} visibility", f"img/{vf}", f"img/{truth_vis[ln]}", f"img/{ef}",
+                                     _fmt(vis_scale[ln])))
             pl = t["per_light"].get(ln, {})
-            p.append(
-                f'<tr><th class="row"><b>{_e(ln)}</b> visibility<br>{_metric_line(pl)}</th>'
+            title = (run.get("ingest") or {}).get("labels", {}).get(ln)    # ingest --label CHANNEL=TEXT
+            tp.append(
+                f'<tr><th class="row"><b>{_e(ln)}</b> visibility{f" ({_e(title)})" if title else ""}<br>'
+                f'{_metric_line(pl)}</th>'
                 f"<td>{_img_tag(vf, f'{name} visibility {ln}')}</td>"
                 f"<td>{_img_tag(truth_vis[ln], f'truth visibility {ln}')}</td>"
                 f"<td>{_img_tag(ef, f'signed error {name} {ln}')}{_legend(vis_scale[ln])}</td></tr>"
             )
             if ln in ti.get("cascade", {}):
                 cf = put(f"{tag}_cascade_{j}_{_slug(ln)}.png", _colour_png(ti["cascade"][ln]))
-                p.append(f'<tr><th class="row"><b>{_e(ln)}</b> cascades<br>red, green, blue, … = cascade 0, 1, 2, …'
-                         f" (blended in the bands, × visibility)</th><td>{_img_tag(cf, f'{name} cascades {ln}')}"
-                         "</td><td></td><td></td></tr>")
+                tp.append(f'<tr><th class="row"><b>{_e(ln)}</b> cascades<br>red, green, blue, … = cascade 0, 1, 2, …'
+                          f" (blended in the bands, × visibility)</th><td>{_img_tag(cf, f'{name} cascades {ln}')}"
+                          "</td><td></td><td></td></tr>")
             if ln in ti.get("aliasing", {}):
                 a = ti["aliasing"][ln]
                 la = np.where(a > 0, np.log2(np.maximum(a, 1e-12)), np.nan)  # grey: no cascade
                 sc = max(1.0, float(np.ceil(_im.error_scale(la))))
                 af = put(f"{tag}_aliasing_{j}_{_slug(ln)}.png", _im.encode_png(_im.signed_error_heatmap(la, sc)))
-                p.append(f'<tr><th class="row"><b>{_e(ln)}</b> aliasing m̃<br>shadow-map texel / pixel footprint, '
-                         "log₂: red = a texel covers several pixels (undersampled), blue = several texels per "
-                         f"pixel, grey = no cascade</th><td>{_img_tag(af, f'{name} aliasing {ln}')}{_ratio_legend(sc)}</td>"
-                         "<td></td><td></td></tr>")
-            p += _virtual_map_rows(ti, ln, name, f"{tag}_{{}}_{j}_{_slug(ln)}.png", put)
+                tp.append(f'<tr><th class="row"><b>{_e(ln)}</b> aliasing m̃<br>shadow-map texel / pixel footprint, '
+                          "log₂: red = a texel covers several pixels (undersampled), blue = several texels per "
+                          f"pixel, grey = no cascade</th><td>{_img_tag(af, f'{name} aliasing {ln}')}{_ratio_legend(sc)}</td>"
+                          "<td></td><td></td></tr>")
+            tp += _virtual_map_rows(ti, ln, name, f"{tag}_{{}}_{j}_{_slug(ln)}.png", put)
         sf = put(f"{tag}_shaded.png", _im.shaded_png(ti["shaded"], exposure))
         sef = put(f"{tag}_shaded_err.png", _im.encode_png(_im.signed_error_heatmap(shaded_err[name], shaded_scale)))
-        p.append(
+        layers.insert(0, _cmp.layer("shaded", f"img/{sf}", f"img/{truth_shaded}", f"img/{sef}", _fmt(shaded_scale)))
+        cmp_items.append(_cmp.item(name, layers))
+        tp.append(
             f'<tr><th class="row"><b>shaded</b><br>{_metric_line(t["metrics"])}</th>'
             f"<td>{_img_tag(sf, f'{name} shaded')}</td>"
             f"<td>{_img_tag(truth_shaded, 'truth shaded')}</td>"
             f"<td>{_img_tag(sef, f'signed error {name} shaded')}{_legend(shaded_scale)}</td></tr>"
         )
-        p.append("</table>")
+        tp.append("</table>")
         for title, cols, rows in band_tables(t):
-            p.append(f'<p class="note">{_e(title)}</p><table class="metrics"><thead><tr>'
-                     + "".join(f"<th>{_e(c)}</th>" for c in cols) + "</tr></thead><tbody>"
-                     + "".join("<tr>" + "".join(f"<td>{_e(c)}</td>" for c in r) + "</tr>" for r in rows)
-                     + "</tbody></table>")
+            tp.append(f'<p class="note">{_e(title)}</p><table class="metrics"><thead><tr>'
+                      + "".join(f"<th>{_e(c)}</th>" for c in cols) + "</tr></thead><tbody>"
+                      + "".join("<tr>" + "".join(f"<td>{_e(c)}</td>" for c in r) + "</tr>" for r in rows)
+                      + "</tbody></table>")
         for title, cols, rows in stats_tables(t.get("stats") or {}):
-            p.append(f'<p class="note">stats per {_e(title[:-1])}</p><table class="metrics"><thead><tr>'
-                     + "".join(f"<th>{_e(c)}</th>" for c in cols) + "</tr></thead><tbody>"
-                     + "".join("<tr>" + "".join(f"<td>{_e(c)}</td>" for c in r) + "</tr>" for r in rows)
-                     + "</tbody></table>")
+            tp.append(f'<p class="note">stats per {_e(title[:-1])}</p><div class="wide"><table class="metrics"><thead><tr>'
+                      + "".join(f"<th>{_e(c)}</th>" for c in cols) + "</tr></thead><tbody>"
+                      + "".join("<tr>" + "".join(f"<td>{_e(c)}</td>" for c in r) + "</tr>" for r in rows)
+                      + "</tbody></table></div>")
 
-    extra = {k: v for k, v in run.items() if k not in ("scene", "resolution", "reference", "lights", "techniques", "images")}
+    if cmp_items or cmp_last:
+        p += ["<h2>Compare images</h2>",
+              _cmp.comparator_html({"width": w, "height": h, "items": cmp_items + cmp_last})]
+    p += g + tp
+    extra = {k: v for k, v in run.items()
+             if k not in ("scene", "resolution", "reference", "lights", "techniques", "images", "gate", "ingest",
+                          "light_info")}
     if extra:
         p.append("<h2>Run</h2>")
-        p.append(f"<pre>{_e(json.dumps(to_jsonable(extra), indent=2))}</pre>")
+        p.append(f"<details><summary>{_e(', '.join(extra))}</summary>"
+                 f"<pre>{_e(json.dumps(to_jsonable(extra), indent=2))}</pre></details>")
     p.append("</body></html>")
     return "\n".join(p) + "\n"
 
@@ -758,7 +932,7 @@ def build(out_dir, run: Mapping, *, force: bool = False, protected=(), kind: str
         if (out / f).is_dir():
             raise InputError(f"report output {out / f} is a directory; remove it or choose another --out")
     json_text = json.dumps(run_to_json(run), indent=2, allow_nan=False) + "\n"
-    md_text = summary_table(run) + "\n"
+    md_text = summary_table(run) + "\n" + gate_markdown(run)
     st_md = stats_markdown(run)
     if st_md:
         md_text += "\n## Stats per light and map\n\n" + st_md

@@ -22,6 +22,13 @@ Conventions
   [Giegl 2007, §4.3]): blue (low) → white → red (high) between two integer levels, the colour bar's
   colours; the undersampling max(demand − provided, 0) white (the tile meets the demand) → red.
   Negative levels (−1: no surface / no tile) and NaN are grey.
+- Pixels on a light (the camera sees a light's shape: a sphere light in view, the sun's disk) show
+  the light's radiance in ``mi.render`` and in an engine's image but have no shading point in the
+  truth (0); their error says nothing about shadows and would set the colour scale (±32 for a
+  sphere light in view). ``error_scale(err, exclude=...)`` leaves them out, with their 8
+  neighbours (which a box-filtered pixel mixes with the light): :func:`emitter_pixels` finds
+  them from the G-buffer's shape ids, :func:`emitter_guess` from the images alone (truth 0 and
+  the other image brighter than the truth's brightest pixel).
 
 >>> import numpy as np
 >>> signed_error_heatmap(np.array([[-1.0, 0.0, 1.0]]), scale=1.0)[0].tolist()
@@ -56,6 +63,9 @@ __all__ = [
     "level_heatmap",
     "undersampling",
     "undersampling_heatmap",
+    "emitter_pixels",
+    "emitter_guess",
+    "grow",
 ]
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries, linear
@@ -81,14 +91,22 @@ def luminance(img) -> np.ndarray:
     raise InputError(f"expected an H×W, H×W×1 or H×W×3 image, got shape {a.shape}")
 
 
-def error_scale(err, percentile: float = 99.0) -> float:
-    """Default symmetric heat-map range: the 99th percentile of |err| (finite values), at least 1e-6.
+def error_scale(err, percentile: float = 99.0, *, exclude=None) -> float:
+    """Default symmetric heat-map range: the 99th percentile of |err| (finite values), at least
+    1e-6; ``exclude``: an H×W bool mask of pixels left out (the pixels on a light, see the module
+    docstring).
 
     >>> error_scale(np.zeros((4, 4)))
     1e-06
+    >>> e = np.zeros((4, 4)); e[0, 0] = 32.0; e[1:, 1:] = 0.5
+    >>> error_scale(e, 100), error_scale(e, 100, exclude=e > 1)
+    (32.0, 0.5)
     """
     e = np.abs(luminance(err))
-    e = e[np.isfinite(e)]
+    ok = np.isfinite(e)
+    if exclude is not None:
+        ok &= ~np.asarray(exclude, bool).reshape(e.shape)
+    e = e[ok]
     if e.size == 0:
         return 1e-6
     return max(float(np.percentile(e, percentile)), 1e-6)
@@ -340,3 +358,47 @@ def undersampling_heatmap(under, *, scale: float) -> np.ndarray:
     [[255, 255, 255], [178, 24, 43], [128, 128, 128]]
     """
     return signed_error_heatmap(np.maximum(np.asarray(under, np.float64), 0.0), scale=scale)
+
+
+def grow(mask) -> np.ndarray:
+    """An H×W bool mask grown by one pixel (its 8 neighbours), by shifted slices.
+
+    >>> grow(np.eye(1, 4, 1, dtype=bool).reshape(1, 4)).astype(int).tolist()
+    [[1, 1, 1, 0]]
+    """
+    m = np.asarray(mask, bool)
+    out = m.copy()
+    h, w = m.shape
+    for dy in (-1, 0, 1):          # 9 shifted views, not a loop over pixels
+        for dx in (-1, 0, 1):
+            out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] |= \
+                m[max(-dy, 0):h + min(-dy, 0), max(-dx, 0):w + min(-dx, 0)]
+    return out
+
+
+def emitter_pixels(shape_id, light_shapes) -> np.ndarray:
+    """H×W bool: the pixels whose camera ray (any sub-pixel's) hits a light's shape. ``shape_id``:
+    the G-buffer's (H, W[, ss²]) Mitsuba shape indices (−1 = miss,
+    :class:`shadowlab.render.gbuffer.GBuffer`); ``light_shapes``: {light: shape index}
+    (``Scene.light_shapes``; delta lights have none).
+
+    >>> emitter_pixels(np.array([[[0], [2]], [[-1], [2]]]), {"bulb": 2}).tolist()
+    [[False, True], [False, True]]
+    """
+    sid = np.asarray(shape_id)
+    hit = np.isin(sid, np.asarray(list(dict(light_shapes).values()), dtype=sid.dtype))
+    return hit.any(axis=2) if hit.ndim == 3 else hit
+
+
+def emitter_guess(truth, other) -> np.ndarray:
+    """H×W bool: the pixels that look like a light seen by the camera, from the images alone:
+    the truth (shaded, linear) is 0 there and ``other`` (``mi.render`` or an engine's image) is
+    brighter than the truth's brightest pixel. For when the G-buffer's :func:`emitter_pixels` is
+    not at hand.
+
+    >>> emitter_guess(np.array([[0.0, 0.5, 0.0]]), np.array([[9.0, 0.5, 0.1]])).tolist()
+    [[True, False, False]]
+    """
+    t, o = luminance(truth), luminance(other)
+    top = float(np.max(t[np.isfinite(t)], initial=0.0))
+    return (t == 0) & np.isfinite(o) & (o > top)

@@ -27,6 +27,11 @@ Visibility of a shading point p with geometric normal n (1 lit, 0 shadowed):
    error distribution (Bias plus a rounding error uniform in ± half a step) and equals it exactly
    for a whole number of UNORM steps, whereas re-quantising D + Bias would drop any Bias below
    half a step;
+   ``bias_mode`` = ``rasterizer``: Direct3D and OpenGL bias every fragment before the depth test,
+   so a texel keeps the smallest biased depth among all surfaces along its ray; the map then holds
+   the first :data:`RASTER_LAYERS` surfaces per texel and D' = min_k saturate(D_k + Bias_k). It
+   differs from ``first_hit`` (the default: the cheaper single-surface map, bias on the first
+   surface) where a steep caster's slope bias carries its depth past a surface close behind it;
 4. *test*: lit = H(D' − d̃) (nearest texel; empty texels are lit); ``backface`` uses the map
    of the first surfaces facing away from the light (front faces culled, §2.3 Slika 2.7).
 
@@ -97,7 +102,14 @@ BIAS_PARAMS = (
               "before projecting"),
     Param("backface", False, "bool", source=SOURCE,
           doc="front-face culling: the map stores the first surface facing away from the light"),
+    Param("bias_mode", "first_hit", "choice", choices=("first_hit", "rasterizer"), source=SOURCE,
+          doc="first_hit: the rasterizer bias is added to the first surface of a texel's ray; rasterizer: to "
+              "every surface along it (RASTER_LAYERS of them), the smallest biased depth kept, as Direct3D and "
+              "OpenGL bias every fragment before the depth test"),
 )
+
+#: surfaces per texel ray the ``rasterizer`` bias mode considers
+RASTER_LAYERS = 4
 
 
 # ----------------------------------------------------------------------------------------------
@@ -122,7 +134,9 @@ def map_settings(frame, light_name: str, values: dict) -> tuple[int, int]:
 def view_for(frame, light_name: str, values: dict):
     """The (cached) LightView a shadow-map technique samples for ``light_name``."""
     res, bits = map_settings(frame, light_name, values)
-    return frame.light_view(light_name, res=res, bits=bits, backface=bool(values.get("backface", False)))
+    layers = RASTER_LAYERS if values.get("bias_mode", "first_hit") == "rasterizer" else 1
+    return frame.light_view(light_name, res=res, bits=bits, backface=bool(values.get("backface", False)),
+                            layers=layers)
 
 
 @dataclass
@@ -218,11 +232,23 @@ def rasterizer_bias(view, D, slope, bias: Bias):
 
 
 def stored_depth(view, face, ix, iy, bias: Bias):
-    """(biased stored depth D', empty, Bias) of texel (ix, iy) of ``face`` (clamped to the face)."""
+    """(biased stored depth D', empty, Bias) of texel (ix, iy) of ``face`` (clamped to the face).
+
+    A view with layers (``bias_mode = "rasterizer"``) holds the surfaces behind the first too:
+    D' = min over them of saturate(D_k + Bias(D_k, slope_k)), what a rasterizer's depth test keeps
+    when every fragment is biased; Bias is then D' − D_0."""
     D = view.fetch("depth", face, ix, iy)
     S = view.fetch("slope", face, ix, iy)
     b = rasterizer_bias(view, D, S, bias)
-    return dr.clip(D + b, 0.0, 1.0), D >= 1.0, b
+    Db = dr.clip(D + b, 0.0, 1.0)
+    layers = view.layers
+    for k in range(1, layers):
+        Dk = view.fetch("layer_depth", face, ix, iy, layer=k)
+        Sk = view.fetch("layer_slope", face, ix, iy, layer=k)
+        Db = dr.select(Dk < 1.0, dr.minimum(Db, dr.clip(Dk + rasterizer_bias(view, Dk, Sk, bias), 0.0, 1.0)), Db)
+    if layers > 1:
+        b = Db - D
+    return Db, D >= 1.0, b
 
 
 def depth_test(view, rec: dict, ix, iy, bias: Bias):
