@@ -1,13 +1,16 @@
-# shadowlab: `make demo` and `make test` set up everything they need (venv, package, libLLVM, Chromium).
+# shadowlab: `make demo` and `make test` set up everything they need (venv, package, libLLVM; the tests also Chromium).
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 LLVM_PKG ?= libllvm19
 CHROMIUM_PKG ?= chromium
 
-.PHONY: setup venv llvm browser demo test bench references docs clean
+.PHONY: setup run-deps venv llvm browser demo test bench references docs clean
 
 setup: venv llvm browser
+
+# what running shadowlab needs (the tests also need the browser)
+run-deps: venv llvm
 
 venv: $(VENV)/.installed
 
@@ -46,17 +49,17 @@ browser:
 		     "$(CHROMIUM_PKG) (or set SHADOWLAB_CHROMIUM to a Chromium binary)." >&2; \
 	fi
 
-demo: setup
+demo: run-deps
 	$(VENV)/bin/shadowlab demo --out reports/demo
 
 test: setup
 	$(PY) -m pytest -q
 
-bench: setup
+bench: run-deps
 	$(VENV)/bin/shadowlab bench --out reports/bench
 
 # Re-render the committed ground truth of every built-in scene at CI resolution.
-references: setup
+references: run-deps
 	for s in $$($(VENV)/bin/shadowlab scenes --names); do \
 		$(VENV)/bin/shadowlab reference $$s --force || exit $$?; done
 

@@ -70,9 +70,9 @@ import mitsuba as mi
 from ..render.top_tree import ORDERS, offset_point, query
 from ..scene.lights import forward as light_forward
 from .base import LightResult, Param, Pooled, Technique, light_scale_param, param_table_markdown, register, scaled_size
-from .pcss import PCF_COUNTS, _pattern_arrays, pcf_pattern, receiver_plane_gradient, scene_light_size
-from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, depth_test, map_entry, map_stats, receiver, stored_depth,
-                         texel_index)
+from .pcss import PCF_COUNTS, _pattern_arrays, pcf_pattern, scene_light_size
+from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, depth_test, map_entry, map_stats, receiver,
+                         receiver_plane_gradient, stored_depth, texel_index)
 
 SOURCE = "[Wang 2022, §1.2]"
 SOFT_SOURCE = "[Wang 2022, §1.4]"
@@ -313,7 +313,7 @@ class FusedDPSVSoft(_Fused):
         zr = rec["z"]
         for name in ("depth", "slope", "z"):
             view.dr(name)
-        g = receiver_plane_gradient(view, rec, frame.gbuffer.ng)
+        g = receiver_plane_gradient(view, rec, rec["ng"])
         if f0.ortho:
             tan = dr.tan(w_light)
             texel_world = 2.0 * f0.scale / N

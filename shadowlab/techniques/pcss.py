@@ -137,7 +137,8 @@ import numpy as np
 from ..errors import InputError
 from ._random import uniform as _uniform
 from .base import LightResult, Param, Pooled, light_scale_param, param_table_markdown, register, scaled_size
-from .shadow_map import BIAS_PARAMS, ShadowMapTechnique, map_entry, map_stats, receiver, stored_depth, texel_index
+from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, map_entry, map_stats, receiver, receiver_plane_gradient,
+                         stored_depth, texel_index)
 
 SOURCE = "[Buljan 2020, §3.6]"
 BLOCKER_COUNTS = (16, 25, 32)
@@ -287,47 +288,6 @@ def _pcf_loop(view, rec, g, bias, w, px, py, n: int, run):
     return dark
 
 
-def _light_space(view, rec, vec):
-    """World vector ``vec`` in the light space of each receiver's face (rows right, up, forward)."""
-    faces = view.proj.faces
-    if view.proj.cube:
-        Rf = mi.Float(np.asarray([f.R for f in faces], np.float32).ravel())
-        rows = [mi.Vector3f(*[dr.gather(mi.Float, Rf, rec["face"] * 9 + 3 * r + c) for c in range(3)])
-                for r in range(3)]
-    else:
-        rows = [mi.Vector3f(*faces[0].R[r]) for r in range(3)]
-    return [dr.dot(vec, r) for r in rows]
-
-
-def receiver_plane_gradient(view, rec, ng):
-    """(∂d/∂u, ∂d/∂v): NDC depth per texel of the receiver's tangent plane (normal ``ng``) in the
-    shadow map. Over a plane n·X = c (light space), 1/z (perspective) or z (orthographic) is
-    linear in the NDC coordinates x' = 2u/N − 1, y' = 1 − 2v/N, so d is linear in (u, v):
-
-        perspective  ∂d/∂x' = −f·n_near/(f − n_near) · n_x·tan/c,  c = n·q
-        orthographic ∂d/∂x' = −n_x·half_extent/(n_z·(f − n_near))
-    (y' likewise with n_y), ∂/∂u = 2/N·∂/∂x', ∂/∂v = −2/N·∂/∂y'. Grazing planes (c or n_z → 0)
-    are kept finite (|denominator| ≥ 1e-6·scale)."""
-    f0 = view.proj.faces[0]
-    N, near, far, s = view.res, f0.near, f0.far, f0.scale
-    nx, ny, nz = _light_space(view, rec, mi.Vector3f(ng))
-    x = 2.0 * rec["u"] / N - 1.0
-    y = 1.0 - 2.0 * rec["v"] / N
-
-    def safe(c, eps):
-        return dr.select(dr.abs(c) < eps, dr.select(c < 0, -eps, eps), c)
-
-    if f0.ortho:
-        den = safe(nz, 1e-6) * (far - near)
-        gx, gy = -nx * s / den, -ny * s / den
-    else:
-        z = rec["z"]
-        c = safe(nx * x * s * z + ny * y * s * z + nz * z, 1e-6 * dr.maximum(dr.abs(z), near))
-        k = -far * near / (far - near) * s
-        gx, gy = k * nx / c, k * ny / c
-    return gx * (2.0 / N), gy * (-2.0 / N)
-
-
 # ----------------------------------------------------------------------------------------------
 # the technique
 
@@ -359,7 +319,7 @@ class PCSS(ShadowMapTechnique):
         zr = rec["z"]
         for name in ("depth", "slope", "z"):  # upload before the symbolic loops record
             view.dr(name)
-        g = receiver_plane_gradient(view, rec, frame.gbuffer.ng) if values["receiver_plane"] else None
+        g = receiver_plane_gradient(view, rec, rec["ng"]) if values["receiver_plane"] else None
         if f0.ortho:
             tan = dr.tan(w_light)
             texel = 2.0 * f0.scale / N                                              # world units per texel

@@ -71,6 +71,7 @@ from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from ..errors import InputError
 from .base import LightResult, Param, Technique, param_table_markdown, register
@@ -194,7 +195,7 @@ def receiver(frame, view, bias: Bias) -> dict:
 
     Returns the dict of :meth:`LightView.lookup` for the normal-offset point, plus ``dt``
     (biased receiver NDC depth d̃), ``zbias`` (world units subtracted from z), ``active``
-    (valid G-buffer point inside the light camera).
+    (valid G-buffer point inside the light camera), ``ng`` (the points' geometric normals).
     """
     gb = frame.gbuffer
     p = gb.p
@@ -210,7 +211,49 @@ def receiver(frame, view, bias: Bias) -> dict:
     rec["dt"] = view.proj.ndc_depth(zt if f0.ortho else dr.maximum(zt, 1e-12))
     rec["zbias"] = zbias
     rec["active"] = gb.valid & rec["inside"]
+    rec["ng"] = ng
     return rec
+
+
+def _light_space(view, rec, vec):
+    """World vector ``vec`` in the light space of each receiver's face (rows right, up, forward)."""
+    faces = view.proj.faces
+    if view.proj.cube:
+        Rf = mi.Float(np.asarray([f.R for f in faces], np.float32).ravel())
+        rows = [mi.Vector3f(*[dr.gather(mi.Float, Rf, rec["face"] * 9 + 3 * r + c) for c in range(3)])
+                for r in range(3)]
+    else:
+        rows = [mi.Vector3f(*faces[0].R[r]) for r in range(3)]
+    return [dr.dot(vec, r) for r in rows]
+
+
+def receiver_plane_gradient(view, rec, ng):
+    """(∂d/∂u, ∂d/∂v): NDC depth per texel of the receiver's tangent plane (normal ``ng``) in the
+    shadow map. Over a plane n·X = c (light space), 1/z (perspective) or z (orthographic) is
+    linear in the NDC coordinates x' = 2u/N − 1, y' = 1 − 2v/N, so d is linear in (u, v):
+
+        perspective  ∂d/∂x' = −f·n_near/(f − n_near) · n_x·tan/c,  c = n·q
+        orthographic ∂d/∂x' = −n_x·half_extent/(n_z·(f − n_near))
+    (y' likewise with n_y), ∂/∂u = 2/N·∂/∂x', ∂/∂v = −2/N·∂/∂y'. Grazing planes (c or n_z → 0)
+    are kept finite (|denominator| ≥ 1e-6·scale)."""
+    f0 = view.proj.faces[0]
+    N, near, far, s = view.res, f0.near, f0.far, f0.scale
+    nx, ny, nz = _light_space(view, rec, mi.Vector3f(ng))
+    x = 2.0 * rec["u"] / N - 1.0
+    y = 1.0 - 2.0 * rec["v"] / N
+
+    def safe(c, eps):
+        return dr.select(dr.abs(c) < eps, dr.select(c < 0, -eps, eps), c)
+
+    if f0.ortho:
+        den = safe(nz, 1e-6) * (far - near)
+        gx, gy = -nx * s / den, -ny * s / den
+    else:
+        z = rec["z"]
+        c = safe(nx * x * s * z + ny * y * s * z + nz * z, 1e-6 * dr.maximum(dr.abs(z), near))
+        k = -far * near / (far - near) * s
+        gx, gy = k * nx / c, k * ny / c
+    return gx * (2.0 / N), gy * (-2.0 / N)
 
 
 def texel_index(u):
