@@ -269,6 +269,12 @@ def _accumulate(view, rec, bias, table, count, s, rot, bilinear: bool, g=None):
     return acc / wsum
 
 
+#: receivers lit more grazingly than this |cos| keep pcf's plain test: their tangent plane, extrapolated
+#: across the taps, passes the surfaces next to them (on the outdoor scenes' cascades that turned
+#: leaks into over-darkening); above it the plane removes the acne of flat-shaded meshes
+#: (``tests/test_pcf_acne.py``)
+RECEIVER_PLANE_MIN_COS = 0.35
+
 PCF_PARAMS = (
     Param("kernel", 3, "int", 1, 9, "taps per side", False, source=SRC,
           doc="n of the n×n footprint: grid/gaussian tap n×n, Poisson patterns fill the disk of radius n/2 "
@@ -284,10 +290,10 @@ PCF_PARAMS = (
           doc="size of the Poisson set `rotated_poisson` rotates"),
     Param("seed", 0, "int", 0, 1_000_000, "", False, source=SRC,
           doc="seed of `rotated_poisson`'s per-point angle 2π·hash(point index, seed)/2³²"),
-    Param("receiver_plane", False, "bool", source="[Isidoro 2006]",
+    Param("receiver_plane", True, "bool", source="[Isidoro 2006]",
           doc="receiver plane depth bias: each tap compares against the receiver's tangent plane at the tap, not "
-              "its depth at the centre (not in the source; removes PCF acne on flat-shaded curved meshes, raises "
-              "leaks on some grazing outdoor receivers: off by default)"),
+              "its depth at the centre (not in the source; removes most PCF acne on flat-shaded curved meshes); "
+              "receivers lit at grazing angles (|cos| < RECEIVER_PLANE_MIN_COS) keep the plain test"),
     Param("bilinear", False, "bool", source=SRC,
           doc="each tap a hardware 2×2 bilinear PCF (four texel tests weighted by the bilinear fractions); "
               "an n×n grid at softness 1 then averages the n×n-texel square exactly, touching (n+1)×(n+1) texels"),
@@ -319,7 +325,7 @@ class PCF(ShadowMapTechnique):
             rot = dr.sincos(theta)[::-1]                           # (cos θ, sin θ)
         for name in ("depth", "slope"):                            # upload before the loop records
             view.dr(name)
-        g = receiver_plane_gradient(view, rec, rec["ng"]) if values["receiver_plane"] else None
+        g = receiver_plane_gradient(view, rec, rec["ng"], RECEIVER_PLANE_MIN_COS) if values["receiver_plane"] else None
         vis = _accumulate(view, rec, bias, table, count, s, rot, bilinear, g)
         return dr.clip(vis, 0.0, 1.0)
 

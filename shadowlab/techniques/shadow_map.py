@@ -227,7 +227,7 @@ def _light_space(view, rec, vec):
     return [dr.dot(vec, r) for r in rows]
 
 
-def receiver_plane_gradient(view, rec, ng):
+def receiver_plane_gradient(view, rec, ng, min_cos: float = 0.0):
     """(∂d/∂u, ∂d/∂v): NDC depth per texel of the receiver's tangent plane (normal ``ng``) in the
     shadow map. Over a plane n·X = c (light space), 1/z (perspective) or z (orthographic) is
     linear in the NDC coordinates x' = 2u/N − 1, y' = 1 − 2v/N, so d is linear in (u, v):
@@ -235,7 +235,9 @@ def receiver_plane_gradient(view, rec, ng):
         perspective  ∂d/∂x' = −f·n_near/(f − n_near) · n_x·tan/c,  c = n·q
         orthographic ∂d/∂x' = −n_x·half_extent/(n_z·(f − n_near))
     (y' likewise with n_y), ∂/∂u = 2/N·∂/∂x', ∂/∂v = −2/N·∂/∂y'. Grazing planes (c or n_z → 0)
-    are kept finite (|denominator| ≥ 1e-6·scale)."""
+    are kept finite (|denominator| ≥ 1e-6·scale); with ``min_cos`` > 0 a receiver whose normal makes
+    |cos| < ``min_cos`` with the direction to the light gets (0, 0): its plane, extrapolated across
+    the taps, would reach far past the surfaces next to it."""
     f0 = view.proj.faces[0]
     N, near, far, s = view.res, f0.near, f0.far, f0.scale
     nx, ny, nz = _light_space(view, rec, mi.Vector3f(ng))
@@ -253,6 +255,14 @@ def receiver_plane_gradient(view, rec, ng):
         c = safe(nx * x * s * z + ny * y * s * z + nz * z, 1e-6 * dr.maximum(dr.abs(z), near))
         k = -far * near / (far - near) * s
         gx, gy = k * nx / c, k * ny / c
+    if min_cos > 0.0:
+        if f0.ortho:
+            cos = dr.abs(nz)
+        else:
+            to_light = dr.normalize(mi.Vector3f(x * s, y * s, 1.0))
+            cos = dr.abs(nx * to_light.x + ny * to_light.y + nz * to_light.z)
+        grazing = cos < min_cos
+        gx, gy = dr.select(grazing, 0.0, gx), dr.select(grazing, 0.0, gy)
     return gx * (2.0 / N), gy * (-2.0 / N)
 
 
