@@ -41,7 +41,7 @@ from .pipeline import technique_metrics
 from .reference import store
 from .render.frame import FrameContext
 from .render.frame import make_frame as _make_frame
-from .scene.spec import load_spec, resolve
+from .scene.spec import scene_spec
 from .techniques import base as _techniques
 from .techniques.base import ShadowResult
 
@@ -105,12 +105,7 @@ def load_reference(scene: str, *, resolution: tuple | None = None, frame: int | 
     >>> load_reference("parallel_planes").lights["panel"].V.shape
     (128, 128)
     """
-    spec = load_spec(resolve(scene))
-    if resolution:
-        spec = spec.with_resolution(*resolution)
-    if frame is not None:
-        spec = spec.at_frame(frame)
-    truth, _ = store.load(spec)
+    truth, _ = store.load(scene_spec(scene, resolution, frame))
     return truth
 
 
@@ -161,5 +156,5 @@ def techniques_for(scene=None) -> dict:
     >>> t["pcss"] is None, "area" in t["dpsv"]
     (True, True)
     """
-    spec = None if scene is None else getattr(scene, "spec", None) or load_spec(resolve(scene))
+    spec = None if scene is None else getattr(scene, "spec", None) or scene_spec(scene)
     return {n: (None if spec is None else _techniques.get(n).unsupported(spec)) for n in _techniques.names()}

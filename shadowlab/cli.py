@@ -24,6 +24,7 @@ from . import backend
 from .bench import run as run_bench
 from .errors import INTERNAL_ERROR, GateFailure, InputError, Interrupted, ShadowlabError
 from .exchange.export import export_scene
+from .api import techniques_for
 from .exchange.ingest import default_out
 from .exchange.ingest import ingest as run_ingest
 from .fit import Budget
@@ -207,11 +208,11 @@ def compare(scene: str = typer.Argument(..., help="Built-in scene name or path t
 
 def _applicable(scene: str) -> list[str]:
     """``-t all``: every technique that renders ``scene``; those that cannot are listed with the reason."""
-    spec = load_spec(resolve(scene))
-    skipped = {n: why for n in base.names() if (why := base.get(n).unsupported(spec))}
-    for n, why in skipped.items():
-        typer.echo(f"skipping {n}: {why}", err=True)
-    return [n for n in base.names() if n not in skipped]
+    why = techniques_for(scene)
+    for n, reason in why.items():
+        if reason:
+            typer.echo(f"skipping {n}: {reason}", err=True)
+    return [n for n, reason in why.items() if not reason]
 
 
 @app.command()

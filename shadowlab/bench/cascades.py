@@ -41,7 +41,7 @@ from ..pipeline import load_scene, reference, shimmer, technique_metrics
 from ..reference import store
 from ..render.frame import make_frame
 from ..techniques import base
-from .timing import render_evaluated, timed
+from .timing import machine_text, render_evaluated, timed
 
 SCENE = "street"
 PATH_SCENE = "boulevard"
@@ -183,8 +183,7 @@ def _ratio_row(label, t, base_t, fps, fps_base) -> str:
 def markdown(res: dict) -> str:
     m = res["machine"]
     lines = [f"# Cascaded shadow maps ({res['date']})", "",
-             f"Machine: {m['cpu']}, {m['cores']} cores, mitsuba {m['mitsuba']}, drjit {m['drjit']}, variant "
-             f"{m['variant']}. All figures from one run{' (--quick: small sizes, not for figures)' if res['quick'] else ''}.",
+             f"Machine: {machine_text(m)}. All figures from one run{' (--quick: small sizes, not for figures)' if res['quick'] else ''}.",
              ""]
     c = res["cost"]
     rows, src = c["rows"], c["source_fps"]

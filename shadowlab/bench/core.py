@@ -44,7 +44,7 @@ from .dpsv import run as dpsv_bench
 from .fit import markdown as fit_markdown
 from .fit import measure as bench_fit
 from .sdf import run as sdf_bench
-from .timing import timed
+from .timing import machine_text, timed
 from .virtual import run as virtual_bench
 
 
@@ -213,8 +213,7 @@ def _markdown(res: dict) -> str:
     tr = res["truth"]
     a, u = tr["adaptive"], tr["uniform"]
     lines = [f"# shadowlab bench ({res['date']})", "",
-             f"Machine: {m['cpu']}, {m['cores']} cores, mitsuba {m['mitsuba']}, drjit {m['drjit']}, "
-             f"variant {m['variant']}, libLLVM {m['libllvm']}. All figures from one run.", "",
+             f"Machine: {machine_text(m)}, libLLVM {m['libllvm']}. All figures from one run.", "",
              f"## Ground truth ({tr['scene']}, {a['resolution'][0]}×{a['resolution'][1]}, target standard error {a['target_se']})", "",
              "| measure | value | goal |", "|---|---|---|",
              f"| wall time of the visibility truth | {a['time_s']:.2f} s | ≤ 5 s |",

@@ -47,7 +47,7 @@ from ..render.top_tree import build_top_tree
 from ..scene import build, parse
 from ..techniques import base
 from ..techniques.shadow_map import view_for
-from .timing import render_evaluated, timed
+from .timing import machine_text, render_evaluated, timed
 
 HARD = ("hard", "sm_dpsv", "dpsv")
 SOFT = ("pcss", "sm_dpsv_soft")
@@ -401,8 +401,7 @@ def _build_md(b: dict) -> list:
 def markdown(res: dict) -> str:
     m = res["machine"]
     lines = [f"# Shadow maps fused with deep partitioned shadow volumes ({res['date']})", "",
-             f"Machine: {m['cpu']}, {m['cores']} cores{', ' + m['gpu'] if m.get('gpu') else ''}, mitsuba "
-             f"{m['mitsuba']}, drjit {m['drjit']}, variant {m['variant']}. All figures from one run "
+             f"Machine: {machine_text(m)}. All figures from one run "
              f"({res['wall_s']:.0f} s), configuration `{res.get('config_name', 'full')}`"
              f"{' (--quick: small sizes, not for figures)' if res['quick'] else ''}. "
              "[Wang 2022] measured on a GPU (GTX 1650); the ratios here are of Dr.Jit "

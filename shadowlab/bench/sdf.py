@@ -43,7 +43,7 @@ from ..scene.spec import load_spec, resolve
 from ..sdf import soft
 from ..techniques import get
 from ..techniques.sdf_shadows import SURFACE_RADIUS, surface_points
-from .timing import warm_median
+from .timing import machine_text, warm_median
 
 VARIANTS = ("base", "linear", "discrete", "convex")
 DIRECTIONS = ("A", "B")
@@ -169,8 +169,7 @@ def bench_radius_curve(scene="sdf_composite", res=128, radii=RADII, epsilons=CUR
 def _markdown(res: dict) -> str:
     m = res["machine"]
     L = [f"# shadowlab bench: SDF soft shadows ({res['date']})", "",
-         f"Machine: {m['cpu']}, {m['cores']} cores, mitsuba {m['mitsuba']}, drjit {m['drjit']}, variant "
-         f"{m['variant']}. All figures from one run; i_max = {I_MAX} (no march stops early unless noted).", ""]
+         f"Machine: {machine_text(m)}. All figures from one run; i_max = {I_MAX} (no march stops early unless noted).", ""]
     for name, d in res["variants"].items():
         W = d["resolution"][0]
         L += [f"## {name}: shadow pass, {W}×{W} ([Bán 2019, Tables 6.1–6.3])", "",

@@ -1,4 +1,4 @@
-"""The one timing helper of every benchmark.
+"""The one timing helper of every benchmark, and the machine line every bench part prints.
 
 Dr.Jit evaluates lazily and launches kernels asynchronously, so a clock read without a
 ``dr.sync_thread()`` before it times the tracing, not the work: :func:`timed` synchronises before
@@ -40,3 +40,14 @@ def render_evaluated(technique, frame, params):
     r = technique.render(frame, params)
     dr.eval(*r.visibility.values())
     return r
+
+
+def machine_text(m: dict) -> str:
+    """The machine a bench part ran on, from ``backend.machine_info()``: CPU, cores, GPU (if any),
+    Mitsuba and Dr.Jit versions, variant.
+
+    >>> machine_text({"cpu": "Xeon", "cores": 2, "mitsuba": "3.9.1", "drjit": "1.5.0", "variant": "llvm_ad_rgb"})
+    'Xeon, 2 cores, mitsuba 3.9.1, drjit 1.5.0, variant llvm_ad_rgb'
+    """
+    gpu = f", {m['gpu']}" if m.get("gpu") else ""
+    return f"{m['cpu']}, {m['cores']} cores{gpu}, mitsuba {m['mitsuba']}, drjit {m['drjit']}, variant {m['variant']}"

@@ -59,7 +59,7 @@ from ..reference.truth import centre_visibility
 from ..render.frame import make_frame
 from ..techniques import base
 from ..techniques.shadow_map import RES_MAX, RES_MIN
-from .timing import render_evaluated, timed
+from .timing import machine_text, render_evaluated, timed
 
 SCENE = "street"
 PATH_SCENE = "boulevard"
@@ -377,9 +377,7 @@ def _equal_md(e: dict, m: dict, plot: str) -> list:
 def markdown(res: dict) -> str:
     m = res["machine"]
     lines = [f"# Virtual shadow maps ({res['date']})", "",
-             f"Machine: {m['cpu']}, {m['cores']} cores{', ' + m['gpu'] if m.get('gpu') else ''}, mitsuba {m['mitsuba']}, "
-             f"drjit {m['drjit']}, variant "
-             f"{m['variant']}. All figures from one run ({res['wall_s']:.0f} s)"
+             f"Machine: {machine_text(m)}. All figures from one run ({res['wall_s']:.0f} s)"
              f"{' (--quick: small sizes, not for figures)' if res['quick'] else ''}.", ""]
     lines += _cost_md(res["cost"], m) + _versus_md(res["cost"], m) + _xi_md(res["xi"], m)
     lines += _equal_md(res["equal_memory"], m, res["plot"])

@@ -570,12 +570,12 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     own = scene.light_shapes.get(light.name)
     shapes = scene.mi_scene.shapes_dr()
     own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
-    si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, bool(getattr(scene, "has_alpha", False)))
+    alpha = bool(getattr(scene, "has_alpha", False))
+    si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha)
     h, slope, dq, zq = _texel_depths(proj, si, bits)
     extra, before = [], h
     for _ in range(layers - 1):  # a few layers, each one wavefront over every texel
-        si = cast_first_hit(scene.mi_scene, si.spawn_ray(ray.d), backface, own_ptr,
-                            bool(getattr(scene, "has_alpha", False)))
+        si = cast_first_hit(scene.mi_scene, si.spawn_ray(ray.d), backface, own_ptr, alpha)
         hk, sk, dk, _ = _texel_depths(proj, si, bits)
         hk &= before                 # a ray that already left the scene meets nothing more
         extra.append((np.where(hk, dk, 1.0).astype(np.float32), np.where(hk, sk, 0.0).astype(np.float32)))

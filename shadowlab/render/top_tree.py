@@ -247,18 +247,21 @@ def build_top_tree(V: np.ndarray, light, *, origin=None, order="random") -> TopT
 
 def stack_size(tree: TopTree) -> int:
     """Room the query's stack needs (depth + 1), rounded up to a power of two (≥ 16)."""
-    return max(16, 1 << int(tree.depth + 1 - 1).bit_length())
+    return max(16, 1 << int(tree.depth).bit_length())        # 2^bits(depth) > depth
 
 
 def offset_point(tree: TopTree, p, ng):
     """The query point of surface point ``p`` (world, Dr.Jit) with geometric normal ``ng``:
-    moved by Mitsuba's shadow-ray offset toward the light, about the tree's origin."""
-    l, w = tree.light, tree.light[3]
-    o = mi.Point3f(*[float(x) for x in tree.origin])
-    if w:
-        to_light = mi.Point3f(*[float(x) for x in l[:3] + tree.origin]) - p
+    moved by Mitsuba's shadow-ray offset toward the light, about the tree's origin. The origin and
+    the light enter opaquely: another light reuses the kernel."""
+    def vec(a, kind):
+        return kind(*[dr.opaque(mi.Float, float(x)) for x in a])
+
+    o = vec(tree.origin, mi.Point3f)
+    if tree.light[3]:
+        to_light = o + vec(tree.light[:3], mi.Vector3f) - p
     else:
-        to_light = mi.Vector3f(*[float(x) for x in l[:3]])
+        to_light = vec(tree.light[:3], mi.Vector3f)
     ng = mi.Vector3f(ng)
     mag = (1.0 + dr.max(dr.abs(p))) * RAY_EPSILON
     mag = dr.mulsign(mag, dr.dot(ng, to_light))

@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import SceneError
 from . import lights as lights_mod
 from .sdf_spec import bounds as sdf_bounds
-from .spec import SceneSpec, load_spec, resolve
+from .spec import SceneSpec, scene_spec
 from .textures import AlphaTextureError, opacity_mask, read_alpha
 
 
@@ -253,9 +253,4 @@ def build(spec: SceneSpec) -> Scene:
 def load(scene: str, resolution: tuple | None = None, frame: int | None = None) -> Scene:
     """Built-in scene name or TOML path -> loaded Scene, optionally at another resolution and at
     frame ``frame`` of its camera path (None: the scene as it is, frame 0 of a path)."""
-    spec = load_spec(resolve(scene))
-    if resolution:
-        spec = spec.with_resolution(*resolution)
-    if frame is not None:
-        spec = spec.at_frame(frame)
-    return build(spec)
+    return build(scene_spec(scene, resolution, frame))

@@ -648,6 +648,17 @@ def load_spec(path) -> SceneSpec:
     return parse(data, str(p))
 
 
+def scene_spec(scene: str, resolution: tuple | None = None, frame: int | None = None) -> SceneSpec:
+    """Built-in scene name or TOML path -> its spec, optionally at another resolution (W, H) and at
+    frame ``frame`` of its camera path (None: the scene as it is)."""
+    spec = load_spec(resolve(scene))
+    if resolution:
+        spec = spec.with_resolution(*resolution)
+    if frame is not None:
+        spec = spec.at_frame(frame)
+    return spec
+
+
 def builtin_dir() -> Path:
     """Directory of the built-in scenes (``scenes/`` at the repository top level)."""
     return Path(__file__).resolve().parents[2] / "scenes"

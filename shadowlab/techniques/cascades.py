@@ -105,7 +105,7 @@ from ..errors import InputError
 from ..render.lightview import FrustumSlice, SceneSphere
 from . import esm, evsm, msm, pcf, pcss, shadow_map, vsm  # noqa: F401  (register the filter families)
 from .base import _REGISTRY, LightResult, Param, RenderContext, Technique, param_table_markdown, register
-from .shadow_map import (BIAS_PARAMS, RASTER_LAYERS, Points, SubFrame, check_map_params, map_entry, map_settings,
+from .shadow_map import (BIAS_PARAMS, Points, SubFrame, check_map_params, map_entry, map_layers, map_settings,
                          map_stats)
 
 SOURCE = "[Buljan 2020, §4]"
@@ -322,9 +322,8 @@ class CSM(Technique):
 
     def render_light(self, frame, light, values, ctx):
         res, bits = map_settings(frame, light.name, values)
-        layers = RASTER_LAYERS if values["bias_mode"] == "rasterizer" else 1
         views = [frame.light_view(light.name, res=res, bits=bits, backface=bool(values["backface"]), fit=fit,
-                                  layers=layers) for fit in ctx.fits]
+                                  layers=map_layers(values)) for fit in ctx.fits]
         N = len(views)
         texel = [2.0 * v.proj.faces[0].scale / v.res for v in views]
         gb = frame.gbuffer

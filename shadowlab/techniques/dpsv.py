@@ -68,11 +68,11 @@ import drjit as dr
 import mitsuba as mi
 
 from ..render.top_tree import ORDERS, offset_point, query
-from ..scene.lights import forward as light_forward
 from .base import LightResult, Param, Pooled, Technique, light_scale_param, param_table_markdown, register, scaled_size
-from .pcss import PCF_COUNTS, _pattern_arrays, pcf_pattern, scene_light_size
+from .pcss import (PCF_COUNTS, _blocked, _pattern_arrays, pcf_pattern, penumbra_width, scene_light_size,
+                   search_width)
 from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, depth_test, map_entry, map_stats, receiver,
-                         receiver_plane_gradient, stored_depth, texel_index)
+                         receiver_plane_gradient, texel_index, to_light)
 
 SOURCE = "[Wang 2022, §1.2]"
 SOFT_SOURCE = "[Wang 2022, §1.4]"
@@ -114,13 +114,12 @@ def _tree_stats(tree) -> dict:
 
 
 def tree_visibility(frame, light, values, active):
-    """(visibility, nodes visited, deepest level visited, tree) of ``light`` at the G-buffer points
-    where ``active``."""
+    """(visibility, AOVs ``nodes_visited`` and ``depth_visited``, tree) of ``light`` at the G-buffer
+    points where ``active``."""
     tree = frame.top_tree(light.name, int(values["segments"]), values["order"])
     gb = frame.gbuffer
-    x = offset_point(tree, gb.p, gb.ng)
-    vis, visits, deepest = query(tree, x, active)
-    return vis, visits, deepest, tree
+    vis, visits, deepest = query(tree, offset_point(tree, gb.p, gb.ng), active)
+    return vis, {"nodes_visited": mi.Float(visits), "depth_visited": mi.Float(deepest)}, tree
 
 
 def edge_classify(view, rec, bias):
@@ -159,12 +158,11 @@ class _Fused(_TreeFamily, ShadowMapTechnique):
         """The fused hard visibility (§1.3) and its parts."""
         rec = receiver(frame, view, ctx.bias)
         h0, edge = edge_classify(view, rec, ctx.bias)
-        tv, visits, deepest, tree = tree_visibility(frame, light, values, edge)
-        vis = dr.select(edge, tv, h0)
-        return rec, vis, edge, {"nodes_visited": mi.Float(visits), "depth_visited": mi.Float(deepest)}, tree
+        tv, tree_aovs, tree = tree_visibility(frame, light, values, edge)
+        return rec, dr.select(edge, tv, h0), edge, tree_aovs, tree
 
     def light_stats(self, frame, light, values, ctx, result):
-        act = result.active.numpy() if result.active is not None else frame.gbuffer.valid.numpy()
+        act = result.active.numpy()
         edge = result.aovs["edge"].numpy() > 0.5
         nv = result.aovs["nodes_visited"].numpy()
         return {"edge_fraction": Pooled(float((edge & act).sum()), int(act.sum())),
@@ -197,9 +195,8 @@ class DPSV(_TreeFamily, Technique):
 
     def render_light(self, frame, light, values, ctx):
         gb = frame.gbuffer
-        vis, visits, deepest, tree = tree_visibility(frame, light, values, gb.valid)
-        return LightResult(vis, {"nodes_visited": mi.Float(visits), "depth_visited": mi.Float(deepest)},
-                           active=gb.valid, stats=_tree_stats(tree))
+        vis, tree_aovs, tree = tree_visibility(frame, light, values, gb.valid)
+        return LightResult(vis, tree_aovs, active=gb.valid, stats=_tree_stats(tree))
 
     def light_stats(self, frame, light, values, ctx, result):
         act = result.active.numpy()
@@ -240,9 +237,7 @@ def _search_grid(view, rec, g, bias, w_search, spacing, n_max: int):
         j, i = k % dr.maximum(n, 1), k // dr.maximum(n, 1)
         du, dv = (mi.Float(j) - half) * step, (mi.Float(i) - half) * step
         ix, iy = texel_index(u + du), texel_index(v + dv)
-        dt = rec["dt"] if g is None else rec["dt"] + g[0] * du + g[1] * dv
-        Db, empty, _ = stored_depth(view, face, ix, iy, bias)
-        hit = ~empty & (Db < dt)
+        hit = _blocked(view, face, ix, iy, rec["dt"] + g[0] * du + g[1] * dv, bias)
         z = view.fetch("z", face, ix, iy)
         return k + 1, cnt + dr.select(hit, 1.0, 0.0), zs + dr.select(hit, z, 0.0)
 
@@ -251,13 +246,6 @@ def _search_grid(view, rec, g, bias, w_search, spacing, n_max: int):
                                lambda k, c, z: k < n * n, body, labels=("k", "count", "zsum"),
                                label="sm_dpsv_soft_search", max_iterations=n_max * n_max)
     return cnt, zs
-
-
-def _to_light(light, p):
-    """Unit direction from ``p`` to the light's centre (a directional light: −its direction)."""
-    if light.kind == "directional":
-        return mi.Vector3f(*[-float(x) for x in light_forward(light)])
-    return dr.normalize(mi.Point3f(*[float(x) for x in light.position]) - p)
 
 
 def _filter_visibility(screen, vis_map, f, w_pen, reject, px, py, nt: int, run):
@@ -300,39 +288,24 @@ class FusedDPSVSoft(_Fused):
                "filtered in screen space with a kernel of fixed world size")
     params = SOFT_PARAMS + TREE_PARAMS + BIAS_PARAMS
 
-    def light_size(self, light, values):
-        w, val = scaled_size(values["light_scale"], scene_light_size(light))
-        return w, val
-
     def evaluate(self, frame, light, view, values, ctx):
         rec, hard_vis, edge, tree_aovs, tree = self.fused(frame, light, view, values, ctx)
         dr.eval(hard_vis)  # the visibility map: a stage boundary, read by the filter at other pixels
-        f0 = view.proj.faces[0]
-        N, near, far = view.res, f0.near, f0.far
-        w_light, w_val = self.light_size(light, values)
+        w_light, w_val = scaled_size(values["light_scale"], scene_light_size(light))
         zr = rec["z"]
-        for name in ("depth", "slope", "z"):
+        for name in ("depth", "slope", "z"):  # upload before the symbolic loops record
             view.dr(name)
         g = receiver_plane_gradient(view, rec, rec["ng"])
-        if f0.ortho:
-            tan = dr.tan(w_light)
-            texel_world = 2.0 * f0.scale / N
-            w_search = dr.maximum(zr - near, 0.0) * tan * (1.0 / texel_world)
-        else:
-            zs = dr.maximum(zr, near)
-            w_search = (zs - near) / zs * w_light * (N / (2.0 * near * f0.scale))
+        w_search = search_width(view, zr, w_light)
         if values["interval_mode"] == "constant":
-            spacing = dr.opaque(mi.Float, float(values["interval"])) + 0.0 * zr
+            spacing = dr.opaque(mi.Float, float(values["interval"]))
         else:
-            spacing = dr.opaque(mi.Float, float(values["interval_k"])) * zr / float(far)
+            spacing = dr.opaque(mi.Float, float(values["interval_k"])) * zr / float(view.proj.faces[0].far)
         cnt, zsum = _search_grid(view, rec, g, ctx.bias, w_search, dr.maximum(spacing, 1e-3),
                                  int(values["search_taps"]))
         found = rec["active"] & (cnt > 0.0)
         z_avg = dr.select(found, zsum / dr.maximum(cnt, 1e-20), zr)
-        if f0.ortho:
-            w_pen = dr.maximum(zr - z_avg, 0.0) * tan
-        else:
-            w_pen = dr.maximum(zr - z_avg, 0.0) / dr.maximum(z_avg, 1e-6) * w_light
+        w_pen = penumbra_width(view, zr, z_avg, w_light)
         screen = frame.screen
         pixel_world = 2.0 * screen.depth * frame.camera.tan_y / screen.height
         w_px = w_pen / dr.maximum(pixel_world, 1e-12)
@@ -340,7 +313,7 @@ class FusedDPSVSoft(_Fused):
         nt = int(values["filter_samples"])
         px, py = _pattern_arrays(pcf_pattern(nt))
         reject = dr.opaque(mi.Float, float(values["depth_reject"])) * w_pen
-        vis = _filter_visibility(screen, hard_vis, _to_light(light, frame.gbuffer.p), w_pen, reject, px, py, nt, run)
+        vis = _filter_visibility(screen, hard_vis, to_light(view, frame.gbuffer.p), w_pen, reject, px, py, nt, run)
         aovs = {"edge": dr.select(edge, 1.0, 0.0), **tree_aovs, "texel": rec["texel"],
                 "penumbra_width": dr.select(found, w_pen, 0.0), "filter_pixels": dr.select(run, w_px, 0.0),
                 "blocker_depth": dr.select(found, z_avg, 0.0)}

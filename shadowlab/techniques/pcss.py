@@ -288,6 +288,25 @@ def _pcf_loop(view, rec, g, bias, w, px, py, n: int, run):
     return dark
 
 
+def search_width(view, zr, w_light):
+    """Step 1's w_search in texels at receiver depth ``zr`` (the module docstring's units):
+    (z̃ − z_near)/z̃ · w_light on the near plane, or (z̃ − z_near)·tan w_light for an orthographic map."""
+    f0 = view.proj.faces[0]
+    N, near = view.res, f0.near
+    if f0.ortho:
+        return dr.maximum(zr - near, 0.0) * dr.tan(w_light) * (1.0 / (2.0 * f0.scale / N))
+    zs = dr.maximum(zr, near)
+    return (zs - near) / zs * w_light * (N / (2.0 * near * f0.scale))
+
+
+def penumbra_width(view, zr, z_avg, w_light):
+    """Step 2's w_penumbra, world units at the receiver: (z̃ − z_avg)/z_avg · w_light, or
+    (z̃ − z_avg)·tan w_light for an orthographic map."""
+    if view.proj.faces[0].ortho:
+        return dr.maximum(zr - z_avg, 0.0) * dr.tan(w_light)
+    return dr.maximum(zr - z_avg, 0.0) / dr.maximum(z_avg, 1e-6) * w_light
+
+
 # ----------------------------------------------------------------------------------------------
 # the technique
 
@@ -315,18 +334,12 @@ class PCSS(ShadowMapTechnique):
     def pcss(self, frame, view, rec, bias, values, w_light):
         """The three steps of §3.6 for the receivers ``rec``; returns (visibility, dict of AOVs)."""
         f0 = view.proj.faces[0]
-        N, near = view.res, f0.near
+        N = view.res
         zr = rec["z"]
         for name in ("depth", "slope", "z"):  # upload before the symbolic loops record
             view.dr(name)
         g = receiver_plane_gradient(view, rec, rec["ng"]) if values["receiver_plane"] else None
-        if f0.ortho:
-            tan = dr.tan(w_light)
-            texel = 2.0 * f0.scale / N                                              # world units per texel
-            w_search = dr.maximum(zr - near, 0.0) * tan * (1.0 / texel)             # texels
-        else:
-            zs = dr.maximum(zr, near)
-            w_search = (zs - near) / zs * w_light * (N / (2.0 * near * f0.scale))  # texels
+        w_search = search_width(view, zr, w_light)
         # 1. blocker search
         nb = int(values["blocker_samples"])
         px, py = _pattern_arrays(SEARCH_SETS[nb])
@@ -334,11 +347,10 @@ class PCSS(ShadowMapTechnique):
         found = rec["active"] & (cnt > 0.0)
         z_avg = dr.select(found, zsum / dr.maximum(cnt, 1e-20), zr)
         # 2. penumbra width (world units at the receiver), 3. filter width (texels)
+        w_pen = penumbra_width(view, zr, z_avg, w_light)
         if f0.ortho:
-            w_pen = dr.maximum(zr - z_avg, 0.0) * tan
-            w_pen_tex = w_pen * (1.0 / texel)
+            w_pen_tex = w_pen * (1.0 / (2.0 * f0.scale / N))
         else:
-            w_pen = dr.maximum(zr - z_avg, 0.0) / dr.maximum(z_avg, 1e-6) * w_light
             w_pen_tex = w_pen / dr.maximum(rec["texel"], 1e-12)
         w_f = dr.maximum(w_pen_tex, dr.opaque(mi.Float, float(values["min_filter"])))
         npcf = int(values["pcf_samples"])

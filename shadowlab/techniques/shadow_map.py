@@ -135,9 +135,13 @@ def map_settings(frame, light_name: str, values: dict) -> tuple[int, int]:
 def view_for(frame, light_name: str, values: dict):
     """The (cached) LightView a shadow-map technique samples for ``light_name``."""
     res, bits = map_settings(frame, light_name, values)
-    layers = RASTER_LAYERS if values.get("bias_mode", "first_hit") == "rasterizer" else 1
     return frame.light_view(light_name, res=res, bits=bits, backface=bool(values.get("backface", False)),
-                            layers=layers)
+                            layers=map_layers(values))
+
+
+def map_layers(values: dict) -> int:
+    """Surfaces per texel the light view keeps for ``bias_mode``: :data:`RASTER_LAYERS` or 1."""
+    return RASTER_LAYERS if values.get("bias_mode", "first_hit") == "rasterizer" else 1
 
 
 @dataclass
@@ -182,7 +186,7 @@ def opaque_bias(values: dict) -> Bias:
                 max_slope=o("max_slope_bias"), normal_offset=o("normal_offset"))
 
 
-def _to_light(view, p):
+def to_light(view, p):
     """Unit direction from ``p`` to the light (the light camera's centre, or −forward)."""
     f0 = view.proj.faces[0]
     if f0.ortho:
@@ -203,7 +207,7 @@ def receiver(frame, view, bias: Bias) -> dict:
     first = view.lookup(p)
     p_off = mi.Point3f(p + ng * (bias.normal_offset * first["texel"]))
     rec = view.lookup(p_off)
-    c = dr.abs(dr.dot(ng, _to_light(view, p)))
+    c = dr.abs(dr.dot(ng, to_light(view, p)))
     tan = dr.safe_sqrt(1.0 - c * c) / dr.maximum(c, 1e-6)
     zbias = bias.constant + dr.minimum(bias.slope * tan, bias.max_slope)
     zt = rec["z"] - zbias
