@@ -121,7 +121,7 @@ def test_declarations():
     assert t.param("pattern").choices == pcf_mod.PATTERNS and t.param("pattern").default == "grid"
     assert t.param("bilinear").default is False and t.param("kernel").hi == 9
     for p in t.params:
-        assert p.doc and p.source.startswith("[Buljan 2020, §" if p.name != "receiver_plane" else "[Isidoro 2006]")
+        assert p.doc and p.source.startswith("[Buljan 2020, §" if p.name not in ("receiver_plane", "grazing_slope_bias") else "[Isidoro 2006]")
     doc = pcf_mod.__doc__
     assert "[Buljan 2020, §3.2]" in doc                   # the source, by its bibliography key
     for pat in pcf_mod.PATTERNS:

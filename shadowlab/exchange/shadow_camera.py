@@ -45,6 +45,7 @@ import numpy as np
 
 from ..render.lightview import projection
 from ..techniques import base as technique_registry
+from ..techniques.shadow_map import GRAZING_MAX_COS, GRAZING_MAX_TAN
 from .bias import bias_mapping
 
 __all__ = ["shadow_camera", "depth_bias_info", "hard_defaults", "CUBE_FACE_ORDER", "CUBE_FACES", "DEPTH_FORMATS",
@@ -193,4 +194,10 @@ def depth_bias_info(light, values: dict | None = None) -> dict:
                        "normal_offset_texels": float(values["normal_offset"]),
                        "note": "shader side, world units: z' = z - constant_bias - min(slope_bias tan(angle(n, l)), "
                                "max_slope_bias) after moving p by normal_offset texel widths along its normal"}
+    out["receiver"]["grazing"] = {
+        "grazing_slope_bias": float(values.get("grazing_slope_bias", 0.0)), "max_cos": GRAZING_MAX_COS,
+        "max_tan": GRAZING_MAX_TAN,
+        "note": "shader side, receivers with 0 <= cos(n, l) < max_cos: texel t is tested with z'_t = z' - max(0, "
+                "-grazing_slope_bias (g_u du + g_v dv)), g the receiver's tangent-plane NDC depth gradient per texel "
+                "(tan(n, l) capped at max_tan), (du, dv) = t's centre - the receiver's texel position; 0 = off"}
     return out

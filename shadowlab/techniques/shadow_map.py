@@ -32,7 +32,13 @@ Visibility of a shading point p with geometric normal n (1 lit, 0 shadowed):
    the first :data:`RASTER_LAYERS` surfaces per texel and D' = min_k saturate(D_k + Bias_k). It
    differs from ``first_hit`` (the default: the cheaper single-surface map, bias on the first
    surface) where a steep caster's slope bias carries its depth past a surface close behind it;
-4. *test*: lit = H(D' − d̃) (nearest texel; empty texels are lit); ``backface`` uses the map
+4. *grazing receivers* (``grazing_slope_bias`` = k): a receiver facing the light with
+   0 ≤ cos(n, l) < :data:`GRAZING_MAX_COS` is tested at texel t with
+   d̃_t = d̃ − max(0, −k·(g_u·Δu + g_v·Δv)), g = its tangent plane's NDC depth gradient per texel
+   (tan(n, l) capped at :data:`GRAZING_MAX_TAN`), Δ = t's centre − the receiver's texel position:
+   min(its depth, its tangent plane's depth at t's centre) for k = 1 [Isidoro 2006] (not on the
+   virtual maps' tiles, whose texels differ per tile and axis);
+5. *test*: lit = H(D' − d̃) (nearest texel; empty texels are lit); ``backface`` uses the map
    of the first surfaces facing away from the light (front faces culled, §2.3 Slika 2.7).
 
 Points outside the light camera or without a surface get visibility 1.
@@ -58,7 +64,30 @@ measured by those tests and not copied here.
 * receiver-side world-unit biases and ``normal_offset`` stay 0: they grow the leaks for no
   further acne reduction here, and world units do not scale with the scene or the map;
 * ``depth_bias_clamp`` = 0: grazing casters need their large slope bias (a clamp of 1e-3 NDC
-  brings acne back on ``contact``).
+  brings acne back on ``contact``);
+* ``grazing_slope_bias`` = 1: near a terminator the nearest texel (or a PCF tap's) holds a steeper
+  part of the surface than the receiver. Along a convex surface the depth z(x) is convex, so the
+  caster at a texel centre x_t lies no nearer the light than the receiver's tangent plane there,
+  z(x_t) ≥ z(x) + z'(x)·(x_t − x): comparing with that plane (k = 1) is exact for convex
+  terminators, and taking the min with the receiver's own depth never darkens. Raising the shared
+  slope-scaled bias instead (to 4) made thin casters' shadows vanish on the outdoor scenes. The cut-off
+  :data:`GRAZING_MAX_COS` equals ``pcf``'s receiver-plane cut-off (the taps the plane does not cover);
+  the tan cap bounds the lift where the caster in front is another object (contact shadows of thin
+  casters on grazing ground, faces nearly edge-on to the light inside another caster's shadow).
+
+How the defaults scale with the texel size w (world size of one texel at the receiver) and the map
+resolution N. A planar receiver tilted by θ from the light changes its light-space depth by w·tan θ
+per texel, so the depth error between a receiver and the texel centre it reads is at most about
+w·tan θ, and a 3×3 PCF tap one texel further away adds w·tan θ more. The caster's NDC slope per texel
+(``slope``, max(|∂d/∂u|, |∂d/∂v|)) is that same w·tan θ measured in NDC: halving N doubles w and
+doubles the stored slope, so ``slope_scaled_depth_bias`` (and ``grazing_slope_bias``, the
+receiver's slope per texel) are counts of texels and hold at any resolution and scene size without
+retuning. ``depth_bias`` is in steps of the depth format (1/(2^bits − 1), or 2^(e − 23) for fp32): it
+covers the rounding of D and d̃, which depends on the format and the depth, not on w, so it neither
+needs to grow with the texel nor is it enough for tilted receivers on its own. World-unit receiver
+biases (``constant_bias``, ``slope_bias``) do not follow w: a value tuned at one resolution leaks at a
+finer map and is too small at a coarser one, which is why they default to 0; ``normal_offset`` is in
+texels at the receiver and so scales with w like the slope terms.
 
 All parameters are piecewise constant in the visibility (a step function of every bias), so none
 is ``differentiable``; fitting searches them without gradients. Every continuous value enters the
@@ -74,6 +103,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import InputError
+from ..render.tiles import TiledView
 from .base import LightResult, Param, Technique, param_table_markdown, register
 
 SOURCE = "[Buljan 2020, §2.3]"
@@ -90,6 +120,11 @@ BIAS_PARAMS = (
               "(UNORM), added to the stored caster depth"),
     Param("slope_scaled_depth_bias", 2.0, "float", -64.0, 64.0, "× NDC depth slope per texel", False,
           source=SOURCE, doc="Direct3D SlopeScaledDepthBias: Bias += value × the caster's max NDC depth slope (∂d/∂x, ∂d/∂y)"),
+    Param("grazing_slope_bias", 1.0, "float", 0.0, 64.0, "× receiver tangent-plane depth drop", False,
+          source="[Isidoro 2006]",
+          doc="receivers facing the light at grazing angles (0 ≤ cos(n, l) < GRAZING_MAX_COS) compare each texel "
+              "with min(their depth, their tangent plane's depth at the texel's centre), the plane's slope × this "
+              "value (tan capped at GRAZING_MAX_TAN): no acne on curved and flat-shaded terminators; 0 = off"),
     Param("depth_bias_clamp", 0.0, "float", -1.0, 1.0, "NDC depth", False, source=SOURCE,
           doc="Direct3D DepthBiasClamp: > 0 Bias = min(clamp, Bias), < 0 Bias = max(clamp, Bias), 0 = none"),
     Param("constant_bias", 0.0, "float", 0.0, 10.0, "world units", False, source=SOURCE,
@@ -111,6 +146,14 @@ BIAS_PARAMS = (
 
 #: surfaces per texel ray the ``rasterizer`` bias mode considers
 RASTER_LAYERS = 4
+
+#: receivers facing the light with cos(n, l) below this get ``grazing_slope_bias`` (the same cut-off as
+#: ``pcf.RECEIVER_PLANE_MIN_COS``: the receivers whose PCF taps keep the plain test)
+GRAZING_MAX_COS = 0.35
+#: tan(angle(n, l)) the grazing term uses at most (cos ≈ 0.32): an edge-on receiver's slope is unbounded, and
+#: a larger cap lets grazing receivers leak under the casters just in front of them (``bench``'s legs inside
+#: the seat's outline; thin casters on ``street``'s ground under the 12° sun, ``street/csm``'s leak gate)
+GRAZING_MAX_TAN = 3.0
 
 
 # ----------------------------------------------------------------------------------------------
@@ -177,13 +220,15 @@ class Bias:
     slope: object
     max_slope: object
     normal_offset: object
+    grazing: object
 
 
 def opaque_bias(values: dict) -> Bias:
     o = lambda k: dr.opaque(mi.Float, float(values[k]))  # noqa: E731
     return Bias(depth_bias=o("depth_bias"), slope_scaled=o("slope_scaled_depth_bias"),
                 clamp=o("depth_bias_clamp"), constant=o("constant_bias"), slope=o("slope_bias"),
-                max_slope=o("max_slope_bias"), normal_offset=o("normal_offset"))
+                max_slope=o("max_slope_bias"), normal_offset=o("normal_offset"),
+                grazing=dr.opaque(mi.Float, float(values.get("grazing_slope_bias", 0.0))))  # absent: no grazing term
 
 
 def to_light(view, p):
@@ -207,7 +252,8 @@ def receiver(frame, view, bias: Bias) -> dict:
     first = view.lookup(p)
     p_off = mi.Point3f(p + ng * (bias.normal_offset * first["texel"]))
     rec = view.lookup(p_off)
-    c = dr.abs(dr.dot(ng, to_light(view, p)))
+    cs = dr.dot(ng, to_light(view, p))
+    c = dr.abs(cs)
     tan = dr.safe_sqrt(1.0 - c * c) / dr.maximum(c, 1e-6)
     zbias = bias.constant + dr.minimum(bias.slope * tan, bias.max_slope)
     zt = rec["z"] - zbias
@@ -216,7 +262,30 @@ def receiver(frame, view, bias: Bias) -> dict:
     rec["zbias"] = zbias
     rec["active"] = gb.valid & rec["inside"]
     rec["ng"] = ng
+    if not isinstance(view, TiledView):   # tiles have texel sizes of their own per axis: no grazing term there
+        rec["rslope"] = grazing_slope(view, rec, ng, cs, tan, bias)
     return rec
+
+
+def grazing_slope(view, rec, ng, cos, tan, bias: Bias):
+    """The receiver's tangent-plane depth gradient (∂d/∂u, ∂d/∂v) per texel
+    (:func:`receiver_plane_gradient`) × ``grazing_slope_bias``, for receivers facing the light with
+    0 ≤ cos(n, l) < :data:`GRAZING_MAX_COS`, (0, 0) for the others. The gradient grows like
+    tan(angle(n, l)); it is scaled down to tan = :data:`GRAZING_MAX_TAN` where tan is larger (an
+    edge-on face's slope is unbounded). :func:`depth_test` lowers the receiver's depth by the
+    plane's depth drop toward the tested texel's centre (never raises it)."""
+    gx, gy = receiver_plane_gradient(view, rec, ng)
+    k = bias.grazing * dr.minimum(1.0, GRAZING_MAX_TAN / dr.maximum(tan, 1e-6))
+    grazing = (cos >= 0.0) & (cos < GRAZING_MAX_COS)
+    return dr.select(grazing, k * gx, 0.0), dr.select(grazing, k * gy, 0.0)
+
+
+def grazing_drop(rec, ix, iy):
+    """max(0, −(g_u·Δu + g_v·Δv)): how far the grazing receiver's scaled tangent plane
+    (:func:`grazing_slope`) lies nearer the light at the centre of texel (ix, iy) than at the
+    receiver (Δ = texel centre − receiver, in texels); 0 for non-grazing receivers."""
+    gx, gy = rec["rslope"]
+    return dr.maximum(0.0, -(gx * (mi.Float(ix) + 0.5 - rec["u"]) + gy * (mi.Float(iy) + 0.5 - rec["v"])))
 
 
 def _light_space(view, rec, vec):
@@ -311,7 +380,8 @@ def stored_depth(view, face, ix, iy, bias: Bias):
 def depth_test(view, rec: dict, ix, iy, bias: Bias):
     """H(z(t_i) − z̃) at one texel: 1.0 lit, 0.0 shadowed (empty texels are lit)."""
     Db, empty, _ = stored_depth(view, rec["face"], ix, iy, bias)
-    return dr.select(empty | (Db >= rec["dt"]), 1.0, 0.0)
+    dt = rec["dt"] - grazing_drop(rec, ix, iy) if "rslope" in rec else rec["dt"]
+    return dr.select(empty | (Db >= dt), 1.0, 0.0)
 
 
 class ShadowMapTechnique(Technique):

@@ -131,7 +131,7 @@ def _tile_params(grid_default: int, grid_doc: str) -> tuple:
 
 #: the bias parameters of ``hard``; a tile's size comes from the tiling, not ``resolution``, and
 #: tiles keep the first surface per texel only (``bias_mode`` first_hit)
-TILE_BIAS_PARAMS = tuple(p for p in BIAS_PARAMS if p.name not in ("resolution", "bias_mode"))
+TILE_BIAS_PARAMS = tuple(p for p in BIAS_PARAMS if p.name not in ("resolution", "bias_mode", "grazing_slope_bias"))
 
 VTSM_PARAMS = _tile_params(8, "n: the virtual map is n × n tiles of t_max² each (16 in [Giegl 2007])") + _focus_params("visible")
 
