@@ -72,18 +72,23 @@ def probe(variant: str, lib: str | None) -> tuple[bool, str]:
 def init(variant: str | None = None, threads: int | None = None, check: bool = True) -> str:
     """Select the Mitsuba variant once per process and make sure its backend works.
 
-    ``variant`` defaults to ``$SHADOWLAB_VARIANT`` or ``llvm_ad_rgb``. Raises EnvironmentProblem
-    (exit 3) when the LLVM backend cannot run a Mitsuba kernel. Returns the variant name.
+    ``variant`` defaults to ``$SHADOWLAB_VARIANT`` or ``llvm_ad_rgb``. Once a variant is chosen,
+    ``init()`` (no variant) returns it: ``shadowlab --variant cuda_ad_rgb`` chooses the variant and
+    the library code below it calls ``init()``. An explicit different variant raises
+    EnvironmentProblem (exit 3): a process runs one variant. Raises EnvironmentProblem too when
+    the LLVM backend cannot run a Mitsuba kernel. Returns the variant name.
 
     >>> init() in SUPPORTED_VARIANTS       # a second call returns the variant already chosen
     True
     """
-    variant = variant or os.environ.get("SHADOWLAB_VARIANT") or DEFAULT_VARIANT
     if _state["variant"] is not None:
-        if variant != _state["variant"]:
+        if variant and variant != _state["variant"]:
             raise EnvironmentProblem(f"variant {variant!r} requested after {_state['variant']!r} was "
                                      "initialised in this process; run a new process to switch")
-        return variant
+        if threads:
+            dr.set_thread_count(int(threads))
+        return _state["variant"]
+    variant = variant or os.environ.get("SHADOWLAB_VARIANT") or DEFAULT_VARIANT
     if variant not in SUPPORTED_VARIANTS:
         raise InputError(f"unknown variant {variant!r}; choose one of {', '.join(SUPPORTED_VARIANTS)}")
 

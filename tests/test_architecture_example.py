@@ -21,12 +21,16 @@ from shadowlab.techniques import get, names
 assert "toy_hard" in names()
 frame = make_frame(load("contact", resolution=(48, 40)))
 toy = get("toy_hard")
-hard = get("hard").render(frame, {"depth_bias": 0, "slope_scaled_depth_bias": 0.0})
+hard = get("hard").render(frame, {"depth_bias": 0, "slope_scaled_depth_bias": 0.0, "grazing_slope_bias": 0.0})
 t0 = toy.render(frame, {"bias": 0.0})
 t1 = toy.render(frame, {"bias": 0.01})
 (light,) = [l.name for l in frame.lights]
 v_hard, v0, v1 = (r.visibility[light].numpy() for r in (hard, t0, t1))
-assert np.array_equal(v0, v_hard), int((v0 != v_hard).sum())
+# with every bias 0 a lit surface tests its own depth (acne): D and d agree to rounding, so one ulp
+# decides. cuda_ad_rgb compiles the two codes' arithmetic with the GPU's rules (ptxas may fuse a
+# multiply and an add, flush denormals), so there a few acne points may flip (measured on an H200:
+# 49 of 1920 points); LLVM must give the same bits
+assert (v0 != v_hard).sum() <= (0.05 * v0.size if mi.variant().startswith("cuda") else 0), int((v0 != v_hard).sum())
 assert np.all(v1 >= v0) and v1.sum() > v0.sum()
 st = t0.stats["lights"][light]
 assert st["maps"] == [{"resolution": frame.scene.spec.light(light).shadow_map, "faces": 1}], st

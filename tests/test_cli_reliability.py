@@ -37,6 +37,7 @@ from shadowlab.reference import store
 from shadowlab.reference.truth import LightTruth, Truth
 from shadowlab.report.outdir import MARKER
 from shadowlab.scene import load_spec
+from conftest import CUDA
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -87,9 +88,11 @@ _WRAPPER = ("import sys\nimport shadowlab.cli as c\nprint('ready', flush=True)\n
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_signal_stops_a_running_reference_with_one_line_and_nothing_stored(tmp_path, sig, code):
     """A real `shadowlab reference` process (its imports done, then the command running: a slow
-    truth, target error 0.0002 and a 4096-round cap on 64²: minutes of rendering) gets the signal: exit 128 + signal, one line on stderr, no
+    truth, target error 0.0002 and a 4096-round cap on 256²: seconds of rendering) gets the signal: exit 128 + signal, one line on stderr, no
     traceback, and the store holds nothing (no reference, no temporary directory)."""
-    scene = _scene(tmp_path, res=64)
+    # the truth's few-wavefront sampler renders a 64² one within the 1.5 s below (on 2 cores too), and
+    # a GPU is faster still: 256² here, 1024² on cuda_ad_rgb
+    scene = _scene(tmp_path, res=1024 if CUDA else 256)
     base = tmp_path / "refs"
     base.mkdir()                 # an existing store: creating one would print a note of its own
     p = subprocess.Popen([sys.executable, "-c", _WRAPPER, "reference", str(scene), "--target-se", "0.0002",

@@ -5,11 +5,13 @@ import hashlib
 import json
 
 import pytest
+from conftest import plugin_installed
 
 # Inner sessions run in subprocesses: in-process runs share sys.modules with this session, and
 # native extensions loaded by other test files (Mitsuba, Dr.Jit, OpenEXR) do not survive pytester's
 # module snapshots (aborts / segfaults while formatting a traceback).
 pytest_plugins = ["pytester"]
+pytestmark = plugin_installed
 
 # the image under test: a lit plane with a soft shadow disc (linear RGB), parameters from the test
 IMAGE = '''

@@ -23,6 +23,7 @@ from shadowlab.pipeline import technique_metrics
 from shadowlab.scene import load, load_spec, resolve
 from shadowlab.scene.lights import forward as lights_forward
 from shadowlab.techniques import base as tbase
+from conftest import CUDA
 
 ROOT = Path(__file__).resolve().parents[1]
 REFS = ROOT / "references"
@@ -109,7 +110,10 @@ def test_committed_street_reference_loads_and_hard_compares(mitsuba_backend):
     both = truth.mask & frame.gbuffer.mask[..., 0]
     assert (truth.mask != frame.gbuffer.mask[..., 0]).sum() <= max(2, truth.mask.size // 2000)
     rel = np.abs(truth.view_depth[both] / frame.gbuffer.view_depth[..., 0][both] - 1.0)
-    assert np.mean(rel <= 1e-4) > 0.999 and rel.max() < 1e-3      # grazing far pixels differ most
+    assert np.mean(rel <= 1e-4) > 0.999      # grazing far pixels differ most
+    # the reference is llvm_ad_rgb's (Embree); under cuda_ad_rgb OptiX's intersector may put a grazing
+    # ray on another surface (measured on an H200: one pixel, depths 3.6× apart), as many as the mask allows
+    assert (rel >= 1e-3).sum() <= (max(2, truth.mask.size // 2000) if CUDA else 0)
     assert truth.view_depth[both].max() >= 200 and truth.view_depth[both].min() <= 3
     assert truth.mask.mean() > 0.75
     V = truth.lights["sun"].V[truth.mask]

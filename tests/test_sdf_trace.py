@@ -16,6 +16,7 @@ from shadowlab.sdf import Mandelbulb, Sphere, cone_trace, hard_visibility, spher
 backend.init()
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
+from conftest import CUDA  # noqa: E402
 
 
 def _vec(a, cls=None):
@@ -201,7 +202,11 @@ def test_mandelbulb_sphere_tracing_does_not_tunnel():
     hit, t, found, tm = hit.numpy(), t.numpy(), found.numpy(), tm.numpy()
     assert found.sum() > 0.8 * n
     assert np.all(hit[found]), "sphere tracing missed a ray that passes through the fractal"
-    assert np.all(t[found] <= tm[found] + 0.01), f"tunnelled by {np.max(t[found] - tm[found]):.3f}"
+    # cuda_ad_rgb evaluates the estimator's sin/cos/log2/exp2 with the GPU's approximate
+    # instructions (a few ulps; the power-8 fold amplifies them near the fuzz), so there the
+    # tolerance is one pixel, 2 cm (measured on an H200: 1.8 cm)
+    tol = 0.02 if CUDA else 0.01
+    assert np.all(t[found] <= tm[found] + tol), f"tunnelled by {np.max(t[found] - tm[found]):.3f}"
     # and its hits are on the surface: the estimate there is below eps
     P = _vec(o[hit] + d[hit] * t[hit, None])
     assert np.all(m.distance(P).numpy() < 1e-4)

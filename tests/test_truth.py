@@ -9,6 +9,7 @@ from shadowlab.reference import store
 from shadowlab.reference.closed_form import parallel_planes_fraction, sphere_visible_fraction
 from shadowlab.render.gbuffer import gbuffer, vec_numpy
 from shadowlab.scene import load
+from conftest import CUDA
 
 backend.init()
 
@@ -98,8 +99,10 @@ def test_gbuffer_view_depth_equals_ray_plane_distance():
     o = np.array(sc.spec.camera.position)
     dist = np.linalg.norm(P - o, axis=-1)
     assert np.allclose(gb.view_depth[..., 0][floor], dist[floor], rtol=1e-5)
-    # and the stored reference carries the same depth
-    assert np.allclose(truth.view_depth[floor], gb.view_depth[..., 0][floor], rtol=1e-6)
+    # and the stored reference carries the same depth; the references are rendered with llvm_ad_rgb
+    # (Embree): OptiX's ray-rectangle intersection on cuda_ad_rgb gives t a few float32 ulps apart
+    # (measured up to 5e-7 relative on an H200), so there 1e-5 (about 80 ulps)
+    assert np.allclose(truth.view_depth[floor], gb.view_depth[..., 0][floor], rtol=1e-5 if CUDA else 1e-6)
 
 
 def test_gbuffer_depth_matches_mitsuba_depth_aov():

@@ -18,6 +18,14 @@ with f = bsdf · Le · cos / pdf from Mitsuba's emitter sampling and v from Mits
    running estimate first dips below the target keeps the reported error honest (stopping
    on it under-reports the error by ~20%, measured on analytic_sphere).
 
+Wavefronts. Each point's stopping rule reads only its own samples, and between the pilot's end
+and its plan's end it decides nothing, so the sampler runs as few, large kernels instead of one
+small kernel per round: every valid point's first ``min_rounds`` rounds in one (a loop over the
+rounds), then one per decision (the pilot's end, each plan's end) with a lane per (point, round)
+up to it, summed per point in round order. Random numbers: PCG32 seeded by (seed, round) on the
+point's own stream, its rank among the valid points for the first rounds and among the points
+that sample on after them for all later ones; a fixed seed gives the same bits.
+
 The rounds are independent, so the standard error is an honest estimate. The shaded truth is
 Σ_L U_L · V_L at the same pixel centres as the techniques (so metrics isolate shadows), and
 Mitsuba's own ``direct`` integrator image (``mi.render``, box filter over the pixel) is stored
@@ -36,7 +44,8 @@ import numpy as np
 from ..render.frame import FrameContext
 from ..render.gbuffer import vec_numpy
 from ..render.lightview import cast_first_hit
-from ..render.shading import sample_light
+from ..render import shading
+from ..render.shading import _hash32, _loop
 from ..scene.lights import forward as lights_fwd
 
 #: the largest seed a truth render takes: Mitsuba's ``mi.render`` gets seed·1000 + i (i < 1000), a 32-bit
@@ -44,6 +53,7 @@ from ..scene.lights import forward as lights_fwd
 SEED_MAX = (2 ** 32 - 1000) // 1000
 
 MIN_SE_ROUNDS = 8  # pilot rounds of a penumbra pixel before its number of rounds is planned
+MAX_LANES = 1 << 22  # (point, round) lanes of one wavefront: bounds its memory (each lane holds a gathered interaction)
 PLAN_MARGIN = 1.25  # planned rounds = margin · pilot variance / target²
 
 
@@ -71,99 +81,244 @@ class Truth:
     stats: dict = field(default_factory=dict)
 
 
+def _window(light, si):
+    """The light's range window at ``si`` (:func:`~shadowlab.render.shading.range_window`; None
+    without a range), computed outside the symbolic loops, which cannot carry a spec."""
+    return shading.range_window(light, si.p)
+
+
+def _round_values(mi_scene, si, emitter, rng, k, kk, alpha, win):
+    """One round of ``sample_light``'s k×k samples with shadow rays at ``si`` from ``rng``: the
+    round's ratio Vr = Σ f·v / Σ f and visible fraction Ar (float64, as the numpy version
+    computed them) and its number of visible samples."""
+    _, fv, fsum, v = _loop(mi_scene, si, emitter, rng, k, True, True, alpha, win)
+    fv, fsum, v = mi.Float64(fv), mi.Float64(fsum), mi.Float64(v)
+    return dr.select(fsum > 0, fv / dr.select(fsum > 0, fsum, 1.0), 1.0), v / mi.Float64(kk), v
+
+
+def _round_hashes(seed: int, max_rounds: int):
+    """The PCG32 state of each round, as ``sample_light`` seeds it: one UInt64 array in memory
+    that the kernels gather from, so the seed never enters a kernel as a literal."""
+    return mi.UInt64(np.array([_hash32(seed, r) for r in range(max(max_rounds, 1))], np.uint64))
+
+
+def _round(mi_scene, si, emitter, idx, hashes, r, k, kk, alpha, win, sums):
+    """Round ``r`` at every lane (PCG32 seeded by the round's hash and the lane's stream key
+    ``idx``), folded into the lane's float64 sums (s_v, s_v2, s_a, s_a2, s_vis)."""
+    rng = mi.PCG32(dr.width(idx), dr.gather(mi.UInt64, hashes, r), mi.UInt64(idx))
+    Vr, Ar, v = _round_values(mi_scene, si, emitter, rng, k, kk, alpha, win)
+    s_v, s_v2, s_a, s_a2, s_vis = sums
+    return s_v + Vr, s_v2 + Vr * Vr, s_a + Ar, s_a2 + Ar * Ar, s_vis + v
+
+
+@dr.syntax
+def _fixed_rounds(mi_scene, si, emitter, idx, hashes, n_rounds, k, kk, alpha, win):
+    """Rounds 0 … n_rounds−1 at every lane: one wavefront (a symbolic loop over the rounds)."""
+    n = dr.width(idx)
+    sums = tuple(dr.zeros(mi.Float64, n) for _ in range(5))
+    r = dr.zeros(mi.UInt32, n)
+    while r < n_rounds:
+        sums = _round(mi_scene, si, emitter, idx, hashes, r, k, kk, alpha, win, sums)
+        r += 1
+    return sums
+
+
+def _one_round(mi_scene, si, emitter, key, r, hashes, k, kk, alpha, win):
+    """Round ``r`` at each lane, a (point, round) pair: (Vr, Ar, visible samples) per lane.
+
+    PCG32 adds the lane's index to the state and to the sequence it is given; the lane is given
+    what makes them the point's own in a wavefront of one lane per point (``_round``): a point of
+    rank ``key`` starts at the round's hash + key on sequence 2·key."""
+    n = dr.width(key)
+    lane, key = dr.arange(mi.UInt64, n), mi.UInt64(key)
+    rng = mi.PCG32(n, dr.gather(mi.UInt64, hashes, r) + key - lane, key + key - lane)
+    return _round_values(mi_scene, si, emitter, rng, k, kk, alpha, win)
+
+
+def _plan(R, s_v, s_v2, s_vis, planned, kk: int, target_se: float, max_rounds: int):
+    """The stopping rule of the module docstring at points that have ``R`` rounds (numpy): plan
+    the rounds from the pilot, re-plan when the plan fell short. Returns (planned, done)."""
+    n = R * kk
+    unanimous = (s_vis == 0) | (s_vis == n)
+    mean = s_v / R
+    var = np.maximum(s_v2 / R - mean * mean, 0.0) * R / np.maximum(R - 1, 1)
+    se = np.sqrt(var / R)
+    need = np.ceil(PLAN_MARGIN * var / target_se ** 2)
+    replan = (R >= MIN_SE_ROUNDS) & ((planned == 0) | ((R >= planned) & (se > target_se)))
+    planned = np.where(replan, np.clip(need, np.maximum(R + (planned > 0), 2 * MIN_SE_ROUNDS), max_rounds),
+                       planned).astype(np.int64)
+    done = unanimous | ((planned > 0) & (R >= planned)) | (R >= max_rounds)
+    return planned, done
+
+
 def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: float = 0.005,
                min_rounds: int = 4, max_rounds: int = 64, seed: int = 0, progress=None) -> LightTruth:
     """Adaptive ground-truth visibility of one light (see the module docstring).
 
-    ``progress(n)`` is called with the number of shadow rays of each round.
+    Few, large wavefronts instead of one small kernel per round: every valid point's first
+    ``min_rounds`` rounds in one kernel (a loop over the rounds), then, for the points whose
+    samples disagreed, one kernel per decision of the stopping rule (the pilot's end, then each
+    plan's end) with a lane per (point, round), so a lane never waits for another point's rounds.
+    A point's random numbers are ``sample_light``'s: PCG32 keyed by (seed, round) and the point's
+    rank among the valid points (first wavefront) or among the points that sample on (later ones);
+    its rounds are summed in order in float64. ``progress(n)`` is called with each wavefront's
+    shadow rays.
     """
 
     scene, gb = frame.scene, frame.gbuffer
     spec = scene.spec.light(light_name)
     emitter = scene.emitters[light_name]
     n_pts = gb.size
-    valid = gb.valid.numpy()
     if spec.is_delta:
         k, min_rounds, max_rounds = 1, 1, 1
     kk = k * k
-    s_v = np.zeros(n_pts)
-    s_v2 = np.zeros(n_pts)
-    s_a = np.zeros(n_pts)
-    s_a2 = np.zeros(n_pts)
-    s_vis = np.zeros(n_pts)          # visible samples
-    rounds = np.zeros(n_pts, np.int64)
-    planned = np.zeros(n_pts, np.int64)
-    active = np.nonzero(valid)[0]
+    alpha = bool(getattr(scene, "has_alpha", False))
+    active = np.nonzero(gb.valid.numpy())[0]
+    hashes = _round_hashes(seed, max_rounds)
+    opq = dict(k=dr.opaque(mi.UInt32, k), kk=dr.opaque(mi.UInt32, kk))
+    n_first = min(max(min_rounds, 1), max_rounds)
     rays = 0
-    r = 0
-    while len(active) and r < max_rounds:
-        idx = mi.UInt32(active.astype(np.uint32))
-        si = dr.gather(type(gb.si), gb.si, idx)
-        _, fv, fsum, v = sample_light(scene, si, emitter, k, seed, r, True)
-        dr.eval(fv, fsum, v)
-        fv, fsum, v = fv.numpy().astype(np.float64), fsum.numpy().astype(np.float64), v.numpy().astype(np.float64)
-        Vr = np.where(fsum > 0, fv / np.where(fsum > 0, fsum, 1), 1.0)
-        Ar = v / kk
-        s_v[active] += Vr
-        s_v2[active] += Vr * Vr
-        s_a[active] += Ar
-        s_a2[active] += Ar * Ar
-        s_vis[active] += v
-        rounds[active] += 1
-        n_rays = len(active) * kk
-        rays += n_rays
+    # per valid point, on the device: the five float64 sums (Σ Vr, Σ Vr², Σ Ar, Σ Ar², visible samples)
+    sums = tuple(dr.zeros(mi.Float64, len(active)) for _ in range(5))
+    rounds = dr.zeros(mi.Float64, len(active))
+    if len(active) and n_first > 0:
+        # wavefront 1: every valid point's first rounds (stream key: rank among the valid points)
+        si = dr.gather(type(gb.si), gb.si, mi.UInt32(active.astype(np.uint32)))
+        sums = _fixed_rounds(scene.mi_scene, si, emitter, dr.arange(mi.UInt32, len(active)), hashes,
+                             dr.opaque(mi.UInt32, n_first), opq["k"], opq["kk"], alpha, _window(spec, si))
+        rounds = dr.full(mi.Float64, n_first, len(active))
+        dr.eval(sums, rounds)
+        rays += len(active) * n_first * kk
         if progress:
-            progress(n_rays)
-        r += 1
-        if r < min_rounds:
-            continue
-        R = rounds[active]
-        n = R * kk
-        unanimous = (s_vis[active] == 0) | (s_vis[active] == n)
-        mean = s_v[active] / R
-        var = np.maximum(s_v2[active] / R - mean * mean, 0.0) * R / np.maximum(R - 1, 1)
-        se = np.sqrt(var / R)
-        # plan the number of rounds from the pilot; re-plan only if the plan fell short
-        need = np.ceil(PLAN_MARGIN * var / target_se ** 2)
-        replan = (R >= MIN_SE_ROUNDS) & ((planned[active] == 0) | ((R >= planned[active]) & (se > target_se)))
-        planned[active] = np.where(replan, np.clip(need, np.maximum(R + (planned[active] > 0), 2 * MIN_SE_ROUNDS),
-                                                   max_rounds), planned[active])
-        done = unanimous | ((planned[active] > 0) & (R >= planned[active]))
-        active = active[~done]
-    R = np.maximum(rounds, 1)
-    V = np.where(valid, s_v / R, 1.0)
-    A = np.where(valid, s_a / R, 1.0)
+            progress(len(active) * n_first * kk)
+        # the points whose samples all agreed are done; the others sample on, each to its own plan:
+        # a wavefront per decision (the pilot's end, each plan's end), one lane per (point, round)
+        rest = np.nonzero(((sums[4] != 0) & (sums[4] != n_first * kk)).numpy())[0]
+        if len(rest):
+            ri = mi.UInt32(rest.astype(np.uint32))
+            si = dr.gather(type(si), si, ri)
+            s_v, s_v2, s_a, s_a2, s_vis = (dr.gather(mi.Float64, x, ri).numpy() for x in sums)
+            R = np.full(len(rest), n_first, np.int64)
+            # the rule at the first check (already a plan when min_rounds reaches the pilot's rounds)
+            planned, done = _plan(R, s_v, s_v2, s_vis, np.zeros(len(rest), np.int64), kk, target_se, max_rounds)
+            live = np.nonzero(~done)[0]          # rows of ``si`` still sampling
+            while len(live):
+                # up to the next decision: the pilot's end, or the end of the plan
+                T = np.where(planned[live] > 0, planned[live], MIN_SE_ROUNDS)
+                T = np.minimum(np.maximum(T, R[live] + 1), max_rounds)
+                # at most MAX_LANES lanes: a long plan takes several wavefronts (the rule decides
+                # nothing before a plan's end, so stopping short of it changes no bit)
+                T = np.minimum(T, R[live] + max(1, MAX_LANES // len(live)))
+                cnt = T - R[live]
+                order = np.argsort(-cnt, kind="stable")     # longest first: round j's lanes are a prefix
+                rows, cnt_s = live[order], cnt[order]
+                width = np.array([(cnt_s > j).sum() for j in range(int(cnt_s.max()))])
+                lane_row = np.concatenate([rows[:w] for w in width])
+                lane_r = np.concatenate([R[rows[:w]] + j for j, w in enumerate(width)])
+                q = mi.UInt32(lane_row.astype(np.uint32))
+                si_q = dr.gather(type(si), si, q)
+                Vr, Ar, v = _one_round(scene.mi_scene, si_q, emitter, q, mi.UInt32(lane_r.astype(np.uint32)), hashes,
+                                       opq["k"], opq["kk"], alpha, _window(spec, si_q))
+                dr.eval(Vr, Ar, v)
+                Vr, Ar, v = Vr.numpy(), Ar.numpy(), v.numpy()
+                start = 0
+                for w in width:  # add the rounds in order, as a point's rounds were always summed
+                    p, sl = rows[:w], slice(start, start + w)
+                    s_v[p] += Vr[sl]
+                    s_v2[p] += Vr[sl] * Vr[sl]
+                    s_a[p] += Ar[sl]
+                    s_a2[p] += Ar[sl] * Ar[sl]
+                    s_vis[p] += v[sl]
+                    start += w
+                R[live] = T
+                n_more = int(cnt.sum()) * kk
+                rays += n_more
+                if progress:
+                    progress(n_more)
+                planned[live], done = _plan(T, s_v[live], s_v2[live], s_vis[live], planned[live], kk, target_se,
+                                            max_rounds)
+                live = live[~done]
+            for x, y in zip(sums + (rounds,), (s_v, s_v2, s_a, s_a2, s_vis, R.astype(np.float64))):
+                dr.scatter(x, mi.Float64(y), ri)
+    return _light_truth(gb, sums, rounds, active, kk, bool(spec.is_delta), rays)
+
+
+def _point_values(size, sums, rounds, active, kk, delta):
+    """V, se(V)², A, se(A)², samples and bound at every G-buffer point (float32, on the device)."""
+    s_v, s_v2, s_a, s_a2, s_vis = sums
+    R = dr.maximum(rounds, 1.0)
 
     def _se(s, s2):
         m = s / R
-        var = np.maximum(s2 / R - m * m, 0.0) * R / np.maximum(R - 1, 1)
-        return np.where(rounds > 1, np.sqrt(var / R), 0.0)
+        var = dr.maximum(s2 / R - m * m, 0.0) * R / dr.maximum(R - 1.0, 1.0)
+        return dr.select(rounds > 1, dr.sqrt(var / R), 0.0)
 
     n = rounds * kk
-    unanimous = valid & ((s_vis == 0) | (s_vis == n))
-    bound = np.where(unanimous & ~np.bool_(spec.is_delta), 3.0 / np.maximum(n, 1), 0.0)
+    unanimous = (s_vis == 0) | (s_vis == n)
+    bound = dr.select(unanimous, 3.0 / dr.maximum(n, 1.0), 0.0) if not delta else dr.zeros(mi.Float64, len(active))
+    se_v, se_a = _se(s_v, s_v2), _se(s_a, s_a2)
+    idx = mi.UInt32(active.astype(np.uint32))
+
+    def full(x, outside):  # every G-buffer point: ``x`` at the valid ones, as float32
+        out = dr.full(mi.Float64, outside, size)
+        dr.scatter(out, x, idx)
+        return mi.Float32(out)
+
+    out = [full(s_v / R, 1.0), full(se_v * se_v, 0.0), full(s_a / R, 1.0), full(se_a * se_a, 0.0), full(n, 0.0),
+           full(bound, 0.0)]
+    dr.eval(out)
+    return out
+
+
+def _light_truth(gb, sums, rounds, active, kk: int, delta: bool, rays: int) -> LightTruth:
+    """The images of a light's truth from each valid point's sums and rounds, computed on the
+    device (float64, the operations of the numpy version they replace) and read back as the
+    float32 images ``gb.to_image`` makes; a point that is not valid is lit with no samples."""
+    if not len(active):  # no surface in view: every point lit, no samples
+        ones, zeros = np.ones(gb.size, np.float32), np.zeros(gb.size, np.float32)
+        out = [ones, zeros, ones, zeros, zeros, zeros]
+    else:
+        out = _point_values(gb.size, sums, rounds, active, kk, delta)
     img = gb.to_image
     s2 = gb.ss * gb.ss  # a pixel's value is the mean of its s² independent sub-pixel estimates
 
-    def se_img(se):
-        return np.sqrt(img(se * se) / s2)
+    def se_img(se2):
+        return np.sqrt(img(se2) / s2)
 
-    return LightTruth(V=img(V), V_se=se_img(_se(s_v, s_v2)), A=img(A), A_se=se_img(_se(s_a, s_a2)),
-                      samples=img(n.astype(np.float64)) * s2, bound=img(bound), rays=int(rays))
+    return LightTruth(V=img(out[0]), V_se=se_img(out[1]), A=img(out[2]), A_se=se_img(out[3]),
+                      samples=img(out[4]) * s2, bound=img(out[5]), rays=int(rays))
 
 
 def mitsuba_render(scene, spp: int = 256, passes: int = 4, seed: int = 0):
     """Mitsuba's own ``direct`` integrator image and the variance of its mean over ``passes``
-    independent renders of spp/passes samples each."""
+    independent renders of spp/passes samples each.
+
+    The passes are summed on the device in float64 (the same additions, in the same order, as
+    numpy's mean and ``var(ddof=1)`` over the stacked passes), so one image and one variance come
+    back to the host instead of every pass."""
     integrator = mi.load_dict({"type": "direct"})
     per = max(1, spp // passes)
-    imgs = [np.asarray(mi.render(scene.mi_scene, sensor=scene.sensor, spp=per, seed=seed * 1000 + i,
+    imgs = []
+    for i in range(passes):
+        img = mi.TensorXd(mi.render(scene.mi_scene, sensor=scene.sensor, spp=per, seed=seed * 1000 + i,
                                     integrator=integrator))
-            for i in range(passes)]
-    stack = np.stack(imgs).astype(np.float64)
-    mean = stack.mean(0)
-    var = stack.var(0, ddof=1) / passes if passes > 1 else np.zeros_like(mean)
-    return mean.astype(np.float32), var.astype(np.float32)
+        dr.eval(img)  # now: the film's storage is reused by the next pass
+        imgs.append(img)
+    total = imgs[0]
+    for im in imgs[1:]:
+        total = total + im
+    # opaque divisors: Dr.Jit turns a division by a literal into a multiplication by its reciprocal
+    mean = total / dr.opaque(mi.TensorXd, passes)
+    if passes > 1:
+        sq = [(im - mean) * (im - mean) for im in imgs]
+        ss = sq[0]
+        for q in sq[1:]:
+            ss = ss + q
+        var = ss / dr.opaque(mi.TensorXd, passes - 1) / dr.opaque(mi.TensorXd, passes)
+    else:
+        var = dr.zeros(mi.TensorXd, mean.shape)
+    dr.eval(mean, var)
+    return mean.numpy().astype(np.float32), var.numpy().astype(np.float32)
 
 
 def render_truth(frame: FrameContext, *, k: int = 8, target_se: float = 0.005, max_rounds: int = 64,
