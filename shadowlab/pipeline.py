@@ -16,12 +16,14 @@ import math
 import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import drjit as dr
 import numpy as np
 
 from . import backend
+from .cluster import Embedded, Executor, run_id
 from .errors import InputError, ReferenceError_
 from .metrics import compare_shaded, penumbra_mask, pooled_visibility
 from .metrics.bands import by_distance, by_label
@@ -140,23 +142,93 @@ def reference_frames(scene: str, resolution=None, frames=None, *, frame: int | N
                      base: Path | None = None, progress: bool = True, ss: int = 1) -> list[tuple]:
     """:func:`reference` for frame ``frame`` or each frame of ``frames`` (an (A, B) pair or "A:B",
     both ends included; neither: the scene as loaded), each stored separately under the same rules
-    (its own lock, atomic save, ``force``). The geometry is loaded once. Returns [(frame, path, meta)]."""
+    (its own lock, atomic save, ``force``), in this process. Returns [(frame, path, meta)]."""
+    done = reference_batch([scene], resolution, frames, frame=frame, force=force, seed=seed, target_se=target_se,
+                           strata=strata, max_rounds=max_rounds, spp=spp, base=base, progress=progress, ss=ss)
+    return [(f, path, meta) for _, f, path, meta in done]
+
+
+@dataclass(frozen=True)
+class ReferenceJob:
+    """One reference to render and store: what a worker needs, and nothing it cannot pickle."""
+
+    scene: str
+    resolution: tuple | None
+    frame: int | None
+    seed: int
+    target_se: float
+    strata: int
+    max_rounds: int
+    spp: int
+    ss: int
+    force: bool
+    base: str
+    run: str
+    progress: bool = False
+
+
+def reference_jobs(scenes: list[str], resolution=None, frames=None, *, frame: int | None = None, force=False,
+                   seed: int = 0, target_se: float = 0.005, strata: int = 8, max_rounds: int = 64, spp: int = 256,
+                   base: Path | None = None, ss: int = 1, progress: bool = False) -> list[ReferenceJob]:
+    """The jobs of a reference batch, every one checked before any is run: arguments in range,
+    scenes that load, frames on each scene's path (``frames="all"``: every frame of each path; a
+    scene without one has only the scene as loaded) and, without ``force``, no reference already
+    stored at any destination (ReferenceError_, exit 2, naming it)."""
     check_reference_args(seed=seed, target_se=target_se, spp=spp, ss=ss, max_rounds=max_rounds)
-    sc0 = load_scene(scene, resolution)
-    todo = frame_list(sc0.spec, frame, frames) or [None]
-    if base is None and os.environ.get(store.ROOT_ENV) and not Path(os.environ[store.ROOT_ENV]).is_dir():
-        print(f"note: {store.ROOT_ENV}={os.environ[store.ROOT_ENV]} does not exist; creating a new reference "
-              "store there", file=sys.stderr)
-    out = []
-    for f in todo:
-        sc = sc0 if f is None else sc0.at_frame(f)
-        dest = store.path_for(sc.name, sc.resolution, base, create=True, frame=sc.frame)
-        with store.writing(dest, force=force, scene_name=sc.name, resolution=sc.resolution):
-            truth, meta = _render_reference(sc, seed=seed, target_se=target_se, strata=strata, max_rounds=max_rounds,
-                                            spp=spp, progress=progress, ss=ss)
-            path = store.save(truth, meta, dest, force=force)
-        out.append((sc.frame, path, meta))
-    return out
+    if not scenes:
+        raise InputError("no scene given: name one or more scenes (`shadowlab scenes` lists the built-in ones), "
+                         "or pass --all")
+    run = run_id()
+    root = str(Path(base) if base is not None else store.root(create=True))  # workers may not share our environment
+    jobs = []
+    for scene in scenes:
+        sc = load_scene(scene, resolution)
+        if frames == "all":
+            todo = list(range(sc.spec.frames)) if sc.spec.path is not None else [None]
+        else:
+            todo = frame_list(sc.spec, frame, frames) or [None]
+        for f in todo:
+            s_ = sc if f is None else sc.at_frame(f)
+            store.check_writable(store.path_for(s_.name, s_.resolution, base, create=True, frame=s_.frame), force, s_.name,
+                                 s_.resolution)
+            jobs.append(ReferenceJob(scene, tuple(sc.resolution), f, seed, target_se, strata, max_rounds, spp, ss,
+                                     force, root, run, progress))
+    return jobs
+
+
+def render_reference_job(job: ReferenceJob) -> tuple:
+    """Render and store one reference (on whichever process runs it); (scene, frame, path, meta).
+
+    Re-runnable: a job whose worker died after the save finds its own result (same run id in
+    meta.json) and returns it instead of refusing the existing reference."""
+    sc = load_scene(job.scene, job.resolution, job.frame)
+    base = Path(job.base)
+    dest = store.path_for(sc.name, sc.resolution, base, create=True, frame=sc.frame)
+    with store.locked(dest):
+        mine = store.stored_by_run(dest, job.run)
+        if mine is not None:
+            return sc.name, sc.frame, dest, mine
+        with store.writing(dest, force=job.force, scene_name=sc.name, resolution=sc.resolution):
+            truth, meta = _render_reference(sc, seed=job.seed, target_se=job.target_se, strata=job.strata,
+                                            max_rounds=job.max_rounds, spp=job.spp, progress=job.progress, ss=job.ss)
+            meta["run"] = job.run
+            path = store.save(truth, meta, dest, force=job.force)
+    return sc.name, sc.frame, path, meta
+
+
+def reference_batch(scenes: list[str], resolution=None, frames=None, *, executor: Executor | None = None,
+                    progress: bool = True, **options) -> list[tuple]:
+    """References of several scenes and frames, one job each (:func:`reference_jobs`), on
+    ``executor`` (default: this process). The results are the same bits whatever runs them:
+    each job's seed is the batch's, and a job depends on nothing but its own fields.
+    Returns [(scene, frame, path, meta)] in job order."""
+    env = os.environ.get(store.ROOT_ENV)
+    new_store = options.get("base") is None and env and not Path(env).is_dir()
+    ex = executor or Embedded()
+    jobs = reference_jobs(scenes, resolution, frames, progress=progress and isinstance(ex, Embedded), **options)
+    if new_store:
+        print(f"note: {store.ROOT_ENV}={env} did not exist; created a new reference store there", file=sys.stderr)
+    return ex.map(render_reference_job, jobs, desc="references", progress=progress and not isinstance(ex, Embedded))
 
 
 def _render_reference(sc, *, seed, target_se, strata, max_rounds, spp, progress, ss):

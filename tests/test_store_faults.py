@@ -374,5 +374,5 @@ def test_a_missed_error_target_is_warned_and_recorded(made):
     x, y, s = tm["lights"]["key"]["worst"][0]
     assert s == pytest.approx(tm["worst_se"]) and truth.lights["key"].V_se[y, x] == pytest.approx(s)
     assert f"warning: {tm['pixels']} pixels" in err and "--max-rounds 32" in err
-    assert f"{store.ROOT_ENV}={base} does not exist; creating a new reference store" in err
+    assert f"{store.ROOT_ENV}={base} did not exist; created a new reference store" in err
     assert meta["scene_file"] == str(scene.resolve())

@@ -297,6 +297,20 @@ def check_writable(dest: Path, force: bool = False, scene_name: str | None = Non
     raise ReferenceError_(f"a reference already exists at {dest}; pass --force to replace it (`{cmd} --force`)")
 
 
+def stored_by_run(dest: Path, run: str) -> dict | None:
+    """The meta of the complete reference at ``dest`` if the job run ``run`` stored it (its
+    ``"run"`` key), else None. Call with the lock held: a job re-run after its worker died
+    recognises its own earlier save this way (:func:`shadowlab.pipeline.render_reference_job`)."""
+    dest = Path(dest)
+    if not dest.is_dir() or _problem(dest):
+        return None
+    try:
+        meta = read_json(dest / "meta.json")
+    except (OSError, ValueError, ShadowlabError):
+        return None
+    return meta if isinstance(meta, dict) and meta.get("run") == run else None
+
+
 @contextmanager
 def writing(dest: Path, force: bool = False, scene_name: str | None = None, resolution=None):
     """Lock ``dest`` for a render and save: clean up after an interrupted save, then check that

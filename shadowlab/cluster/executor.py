@@ -1,0 +1,205 @@
+"""Where jobs run: in this process, or on Dask distributed [Dask 2024, "Futures"; "LocalCluster"].
+
+A job is a picklable value and a module-level function of it (a reference: scene, resolution,
+frame, seed; a sweep point: technique, scene, parameters). :func:`open_executor` picks where:
+
+* neither ``workers`` nor a scheduler: the embedded default, each job in this process, in order;
+* ``workers=N``: a :class:`distributed.LocalCluster` of N worker processes with one task thread
+  each, whose Dr.Jit thread pools share this machine's cores (``cores // N`` threads each);
+* ``scheduler="tcp://HOST:8786"`` (or ``$SHADOWLAB_SCHEDULER``): an existing cluster.
+
+Jobs go to the cluster through ``Client.submit`` and come back in submission order, so a result
+does not depend on which worker ran it or when. Each job selects the Mitsuba variant in its
+worker (:func:`shadowlab.backend.init`); each worker keeps its own kernel cache (:mod:`.preload`).
+A worker that dies mid-job has its job re-run elsewhere by the scheduler; jobs that write the
+reference store are written to be re-run (the store's lock and atomic save, and a run id).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import uuid
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Callable, Sequence
+
+from distributed import Client, LocalCluster, as_completed
+from tqdm import tqdm
+
+from .. import backend
+from ..errors import EnvironmentProblem, InputError
+
+__all__ = ["Executor", "Embedded", "DaskExecutor", "open_executor", "SCHEDULER_ENV", "PRELOAD", "SCHEMES",
+           "run_id"]
+
+SCHEDULER_ENV = "SHADOWLAB_SCHEDULER"
+#: the worker preload, by file path (it must run before Dr.Jit is imported, so not as a module)
+PRELOAD = str(Path(__file__).with_name("preload.py"))
+#: address schemes of Dask's communication layer
+SCHEMES = ("tcp", "tls", "inproc", "ucx", "ws", "wss")
+CONNECT_TIMEOUT_S = 10
+
+
+def run_id() -> str:
+    """A fresh id for one command's jobs (recorded with what they store, so that a job re-run after
+    its worker died recognises its own earlier result)."""
+    return uuid.uuid4().hex[:16]
+
+
+def _call(fn: Callable, item, variant: str, threads: int | None):
+    """A job on a worker: select the variant (once per process) and the thread count, then run."""
+    backend.init(variant, threads=threads)
+    return fn(item)
+
+
+class Executor:
+    """Runs ``fn`` over jobs; :meth:`map` returns the results in the order of ``items``."""
+
+    kind = "embedded"
+    workers = 1
+
+    def map(self, fn: Callable, items: Sequence, *, desc: str = "jobs", progress: bool = False) -> list:
+        raise NotImplementedError
+
+    def describe(self) -> dict:
+        """What ran the jobs (recorded in outputs)."""
+        return {"kind": self.kind, "workers": self.workers}
+
+    def close(self) -> None:
+        pass
+
+
+class Embedded(Executor):
+    """Each job in this process, in order (the default)."""
+
+    def map(self, fn, items, *, desc="jobs", progress=False):
+        out = []
+        with tqdm(total=len(items), desc=desc, unit="job", disable=not progress, leave=False) as bar:
+            for x in items:
+                out.append(fn(x))
+                bar.update(1)
+        return out
+
+
+class DaskExecutor(Executor):
+    """Jobs on a Dask cluster through a :class:`distributed.Client`."""
+
+    kind = "dask"
+
+    def __init__(self, client, *, cluster=None, threads: int | None = None, address: str | None = None):
+        self.client, self.cluster, self.threads, self.address = client, cluster, threads, address
+        self.variant = backend.init()
+        self.workers = len(client.scheduler_info().get("workers", {})) or 1
+
+    def map(self, fn, items, *, desc="jobs", progress=False):
+        futs = [self.client.submit(_call, fn, x, self.variant, self.threads, pure=False,
+                                   key=f"shadowlab-{desc.replace(' ', '_')}-{i}-{uuid.uuid4().hex[:8]}")
+                for i, x in enumerate(items)]
+        try:
+            with tqdm(total=len(futs), desc=f"{desc} ({self.workers} workers)", unit="job", disable=not progress,
+                      leave=False) as bar:
+                for f in as_completed(futs):
+                    if f.status == "error":
+                        raise f.exception()
+                    bar.update(1)
+            return [f.result() for f in futs]
+        finally:
+            for f in futs:
+                if not f.done():
+                    f.cancel()
+
+    def describe(self):
+        return {"kind": self.kind, "workers": self.workers,
+                "scheduler": self.address or "LocalCluster (processes)", "threads_per_worker": self.threads}
+
+    def close(self):
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+
+def check_address(address: str) -> str:
+    """``tcp://HOST:PORT`` and the other schemes of :data:`SCHEMES`; anything else is an InputError."""
+    scheme, sep, rest = address.partition("://")
+    if not sep or scheme not in SCHEMES or not rest:
+        raise InputError(f"--scheduler {address!r}: not a Dask scheduler address; give "
+                         f"{' or '.join(s + '://HOST:PORT' for s in SCHEMES[:2])} (e.g. tcp://10.0.0.5:8786)")
+    return address
+
+
+def check_workers(workers: int | None) -> int | None:
+    if workers is not None and workers < 1:
+        raise InputError(f"--workers {workers}: give 1 or more worker processes (or leave --workers out to run "
+                         "in this process)")
+    return workers
+
+
+def threads_per_worker(workers: int, cores: int | None = None) -> int:
+    """Dr.Jit threads of each of ``workers`` local processes so that together they use the cores
+    once: ``max(1, cores // workers)``.
+
+    >>> threads_per_worker(2, cores=2), threads_per_worker(3, cores=16), threads_per_worker(4, cores=2)
+    (1, 5, 1)
+    """
+    return max(1, (cores or os.cpu_count() or 1) // workers)
+
+
+@contextmanager
+def open_executor(workers: int | None = None, scheduler: str | None = None):
+    """The executor for ``--workers`` / ``--scheduler`` (``$SHADOWLAB_SCHEDULER``), closed on exit.
+
+    Bad options are an InputError (exit 2); a scheduler that cannot be reached is an
+    EnvironmentProblem (exit 3) naming the address.
+
+    >>> with open_executor() as ex:
+    ...     ex.map(abs, [-2, 3])
+    [2, 3]
+    """
+    check_workers(workers)
+    if workers is not None and scheduler:
+        raise InputError("--workers and --scheduler: give one (--workers N starts a local cluster, --scheduler "
+                         "uses an existing one)")
+    address = scheduler or (None if workers is not None else os.environ.get(SCHEDULER_ENV) or None)
+    if address is None and workers is None:
+        ex = Embedded()
+    elif address is not None:
+        ex = _connect(check_address(address))
+    else:
+        ex = _local(workers)
+    try:
+        yield ex
+    finally:
+        ex.close()
+
+
+def _connect(address: str) -> DaskExecutor:
+    try:
+        client = Client(address, timeout=CONNECT_TIMEOUT_S)
+    except (OSError, TimeoutError) as e:
+        raise EnvironmentProblem(f"cannot reach the Dask scheduler at {address} ({type(e).__name__}: {e}); start "
+                                 f"one there (`dask scheduler`) or fix --scheduler / ${SCHEDULER_ENV}") from None
+    return DaskExecutor(client, address=address, threads=None)
+
+
+def visible_gpus() -> list[str]:
+    """The GPU ids this process may use: ``$CUDA_VISIBLE_DEVICES`` if set, else those ``nvidia-smi -L``
+    lists ([] on a machine without)."""
+    env = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if env is not None:
+        return [g.strip() for g in env.split(",") if g.strip()]
+    try:
+        out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return []
+    return [str(i) for i, l in enumerate(out.stdout.splitlines()) if l.startswith("GPU ")] if out.returncode == 0 else []
+
+
+def _local(workers: int) -> DaskExecutor:
+    env = {}
+    if backend.init().startswith("cuda"):   # one worker per GPU, round robin (the preload sets CUDA_VISIBLE_DEVICES)
+        env["SHADOWLAB_WORKER_GPUS"] = ",".join(visible_gpus())
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                           preload=[PRELOAD], silence_logs=logging.ERROR, env=env)
+    return DaskExecutor(Client(cluster), cluster=cluster, threads=threads_per_worker(workers))
