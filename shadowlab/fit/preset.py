@@ -210,6 +210,8 @@ def preset_meta(run) -> dict:
     report's preset.toml): scene, resolution, loss and each technique's loss before and after."""
     meta = {"scene": run["scene"], "resolution": f"{run['resolution'][0]}x{run['resolution'][1]}",
             "loss": run["loss"]}
+    if run.get("scenes"):                       # a fit over several scenes: each with its resolution
+        meta["scenes"] = ", ".join(f"{e['name']} {e['resolution'][0]}x{e['resolution'][1]}" for e in run["scenes"])
     for t, r in run["techniques"].items():
         meta[f"{t}_loss_before"] = r["loss_before"]
         meta[f"{t}_loss_after"] = r["loss_after"]

@@ -86,11 +86,28 @@ def param_text(r: dict) -> str:
     return ", ".join(f"{n} {_fmt(d['start'])} → {_fmt(d['fitted'])}" for n, d in r["params"].items())
 
 
+def scenes_text(run: dict) -> str:
+    """``scene (WxH)``, or for a fit over several scenes each of them with its resolution."""
+    if run.get("scenes"):
+        return " + ".join(f"{e['name']} ({e['resolution'][0]}x{e['resolution'][1]})" for e in run["scenes"])
+    w, h = run["resolution"]
+    return f"{run['scene']} ({w}x{h})"
+
+
+def _frames(frames) -> str:
+    fr = [f for f in frames if f is not None]
+    return ", ".join(map(str, fr)) if fr else "–"
+
+
+def scene_rows(run: dict) -> list:
+    """[(technique, scene, entry)] of a fit over several scenes (each scene's loss with the joint preset)."""
+    return [(t, n, e) for t, r in run["techniques"].items() for n, e in (r.get("scenes") or {}).items()]
+
+
 def summary_table(run: dict) -> str:
     """Markdown: one row per technique (fitted values, loss and shaded penumbra RMSE before → after,
     evaluations, backward passes, kernels compiled / loaded from disk, wall time)."""
-    w, h = run["resolution"]
-    lines = [f"# shadowlab fit: {run['scene']} ({w}x{h}), loss {run['loss']}, method {run['method']}", "",
+    lines = [f"# shadowlab fit: {scenes_text(run)}, loss {run['loss']}, method {run['method']}", "",
              "| technique | parameters (start → fitted) | methods | loss before | loss after | "
              "shaded RMSE penumbra before → after | evaluations | backward | kernels compiled / from disk | wall (s) |",
              "|---|---|---|---:|---:|---|---:|---:|---|---:|"]
@@ -103,6 +120,13 @@ def summary_table(run: dict) -> str:
                      f"{k['compiled']} / {k['loaded_from_disk']} | {r['wall_time_s']:.2f} |")
     for t, why in (run.get("skipped") or {}).items():
         lines.append(f"| {t} | skipped: {why} | | | | | | | | |")
+    if run.get("scenes"):
+        lines += ["", "Each scene with the joint preset (one preset minimising the mean loss over the scenes):", "",
+                  "| technique | scene | frames | loss before | loss after | shaded RMSE penumbra before → after |",
+                  "|---|---|---|---:|---:|---|"]
+        lines += [f"| {t} | {n} | {_frames(e['frames'])} | {_fmt(e['loss_before'])} | {_fmt(e['loss_after'])} | "
+                  f"{_fmt(e['metrics_before'].get('rmse_penumbra'))} → {_fmt(e['metrics_after'].get('rmse_penumbra'))} |"
+                  for t, n, e in scene_rows(run)]
     losses = {}
     for t, r in run["techniques"].items():
         losses.setdefault(r["loss"]["description"], []).append(t)
@@ -266,17 +290,17 @@ def _section(run: dict, t: str, r: dict, img_dir: Path, exposure: float) -> list
 
 
 def _page(run: dict, img_dir: Path, out: Path) -> str:
-    w, h = run["resolution"]
     (img_dir / "colorbar.png").write_bytes(_im.colorbar_png())
     exposure = _im.common_exposure(run["truth_images"]["shaded"])
-    title = f"shadowlab fit: {run['scene']} — {w}×{h}"
+    title = f"shadowlab fit: {scenes_text(run)}"
     p = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">', f"<title>{_e(title)}</title>",
          f"<style>{_CSS}</style></head><body>", f"<h1>{_e(title)}</h1>",
          f'<p class="note">Reference {_e(run["reference"]["path"])} (worst standard error '
          f'{_e(_fmt(run["reference"]["max_std_error"]))}). Loss <code>{_e(run["loss"])}</code>, method '
          f'<code>{_e(run["method"])}</code>. Files: <a href="fit.json">fit.json</a>, '
          f'<a href="summary.md">summary.md</a>, <a href="preset.toml">preset.toml</a> '
-         f'(<code>shadowlab compare {_e(run["scene"])} --preset {_e(out / "preset.toml")}</code>).</p>']
+         f'(<code>shadowlab compare {_e(run["scenes"][0]["scene"] if run.get("scenes") else run["scene"])} '
+         f'--preset {_e(out / "preset.toml")}</code>).</p>']
     if run.get("preset_in"):
         p.append(f'<p class="note">Started from preset {_e(run["preset_in"]["name"])} ({_e(run["preset_in"]["path"])}).</p>')
     rows = []
@@ -294,6 +318,18 @@ def _page(run: dict, img_dir: Path, out: Path) -> str:
              "<th>loss after</th><th>shaded RMSE penumbra</th><th>evaluations</th><th>backward</th>"
              "<th>kernels compiled / from disk</th><th>wall (s)</th></tr></thead><tbody>" + "".join(rows)
              + "</tbody></table>")
+    if run.get("scenes"):
+        first = run["scenes"][0]["name"]
+        p.append(f"<h2>Scenes</h2><p>One preset for {len(run['scenes'])} scenes: it minimises the mean of the scenes' "
+                 "objectives (each the mean over its frames); each scene's loss with it, before and after. The images "
+                 f"below are {_e(first)}'s.</p>")
+        p.append('<table class="t"><thead><tr><th>technique</th><th>scene</th><th>frames</th><th>loss before</th>'
+                 "<th>loss after (joint preset)</th><th>shaded RMSE penumbra</th></tr></thead><tbody>" + "".join(
+                     f"<tr><td>{_e(t)}</td><td>{_e(n)}</td><td>{_e(_frames(e['frames']))}</td>"
+                     f"<td>{_e(_fmt(e['loss_before']))}</td><td>{_e(_fmt(e['loss_after']))}</td>"
+                     f"<td>{_e(_fmt(e['metrics_before'].get('rmse_penumbra')))} → "
+                     f"{_e(_fmt(e['metrics_after'].get('rmse_penumbra')))}</td></tr>" for t, n, e in scene_rows(run))
+                 + "</tbody></table>")
     p.append('<p class="note">Heat maps: signed error technique − truth (blue: darker than the truth, red: '
              "brighter); start and fitted share one colour scale per row. Visibility: grey level = visibility. "
              f"Shaded images: exposure {_e(_fmt(exposure))}, sRGB.</p>")

@@ -16,7 +16,7 @@ from pathlib import Path
 import drjit as dr
 import numpy as np
 
-from ..errors import InputError, ShadowlabError
+from ..errors import InputError, ReferenceError_, ShadowlabError
 from ..pipeline import frame_list, load_scene, technique_metrics
 from ..reference import store
 from ..render.frame import make_frame
@@ -24,7 +24,8 @@ from ..techniques import base as tbase
 from . import preset as P
 from . import report as R
 from . import search as S
-from .objective import DIFFERENTIABLE_LOSSES, KernelCounter, MeanObjective, Objective, check_loss
+from .objective import DIFFERENTIABLE_LOSSES, KernelCounter, Objective, check_loss
+from .parts import Kernels, Part, PartsObjective
 
 #: parameters ``--all`` (and ``fit`` without ``--params``) fits for techniques without
 #: differentiable parameters; every other technique fits its differentiable parameters
@@ -245,26 +246,45 @@ def plan(tech_name: str, frame, *, params=None, method="auto", loss="rmse_penumb
     return Plan(tech=tech, names=names, dims=dims, start=start, fixed=fixed, loss=loss, method=method)
 
 
-def _metrics(p: Plan, values: dict, pairs) -> tuple:
+def _metrics(p: Plan, values: dict, pairs, per: list | None = None) -> tuple:
     """(metrics, per_light, images, render) of ``values`` on the first (frame, truth) of ``pairs``,
-    with every metric replaced by its mean over all of them (the guards of several frames)."""
+    with every metric replaced by its mean over all of them (the guards of several frames);
+    ``per``: a list that receives each pair's metrics."""
     res = p.tech.render(pairs[0][0], {**p.fixed, **values})
     m, pl, img = technique_metrics(pairs[0][0], pairs[0][1], res)
+    ms = [m] + [technique_metrics(f, t, p.tech.render(f, {**p.fixed, **values}))[0] for f, t in pairs[1:]]
+    if per is not None:
+        per[:] = ms
     if len(pairs) > 1:
-        ms = [m] + [technique_metrics(f, t, p.tech.render(f, {**p.fixed, **values}))[0] for f, t in pairs[1:]]
-        m = {k: float(np.mean([x[k] for x in ms])) if all(x.get(k) is not None for x in ms) else None for k in m}
+        m = _mean_metrics(ms)
     return m, pl, img, res
 
 
-def execute(p: Plan, frame, truth, budget: Budget, more=()) -> dict:
+def _mean_metrics(ms: list) -> dict:
+    return {k: float(np.mean([x[k] for x in ms])) if all(x.get(k) is not None for x in ms) else None for k in ms[0]}
+
+
+def execute(p: Plan, frame, truth, budget: Budget, more=(), *, executor=None, parts=None) -> dict:
     """Run one planned fit; returns the result dict (JSON-able, plus ``images``: numpy).
-    ``more``: further (frame, truth) pairs (frames of a camera path) fitted together with
-    ``frame``: the objective is the mean over all of them (:class:`MeanObjective`), the guards
-    compare metrics averaged over them, the images are ``frame``'s."""
+    ``more``: further (frame, truth) pairs (frames of a camera path, other scenes) fitted together
+    with ``frame``: the objective is the mean over all of them, the guards compare metrics averaged
+    over them, the images are ``frame``'s. Each evaluation is one job per pair
+    (:mod:`.parts`) on ``executor`` (default: this process); ``parts``: the pairs'
+    :class:`~.parts.Part` (default: from their frames, references in the default store). With
+    pairs of several scenes the result has ``scenes``: each scene's loss before and after."""
     pairs = [(frame, truth), *more]
+    parts = list(parts) if parts is not None else [Part.of(f.scene) for f, _ in pairs]
     objs = [Objective(f, t, p.tech, p.loss, fixed=p.fixed) for f, t in pairs]
-    obj = objs[0] if len(objs) == 1 else MeanObjective(objs)
-    with KernelCounter() as counter:
+    obj = PartsObjective(executor, parts, objs, p.tech.name, p.loss, p.fixed)
+    try:
+        return _execute(p, frame, pairs, budget, obj)
+    finally:
+        obj.close()
+
+
+def _execute(p: Plan, frame, pairs, budget: Budget, obj) -> dict:
+    with KernelCounter() as local:
+        counter = Kernels(local, obj)
         dr.sync_thread()
         t0 = time.perf_counter()
         s = S.Search(obj, counter, tuple(p.names), start=dict(p.start))
@@ -285,11 +305,12 @@ def execute(p: Plan, frame, truth, budget: Budget, more=()) -> dict:
     hist = s.history
     evaluations, gradients = obj.evaluations, obj.gradients
     # the report's metrics and images (outside the search: not counted)
-    m_b, pl_b, img_b, res_b = _metrics(p, p.start, pairs)
-    m_a, pl_a, img_a, res_a = _metrics(p, fitted, pairs)
+    per_b, per_a = [], []
+    m_b, pl_b, img_b, res_b = _metrics(p, p.start, pairs, per_b)
+    m_a, pl_a, img_a, res_a = _metrics(p, fitted, pairs, per_a)
     # never end worse than the start as ``compare`` measures it: these renders are exactly what
     # ``compare --preset`` renders (same frame, plain values, the preset's repr round trip)
-    guards = guard_metrics(p.loss, frame)
+    guards = guard_metrics(p.loss, max((f for f, _ in pairs), key=lambda f: len(f.lights)))
     bad = [g for g in guards if _worse(m_a.get(g), m_b.get(g))]
     if bad:
         tried = [fitted]
@@ -302,14 +323,15 @@ def execute(p: Plan, frame, truth, budget: Budget, more=()) -> dict:
             o = obj.value(cand)                  # outside the search: not counted
             if o > obj_before:
                 continue
-            m_c, pl_c, img_c, res_c = _metrics(p, cand, pairs)
+            per_c = []
+            m_c, pl_c, img_c, res_c = _metrics(p, cand, pairs, per_c)
             if not any(_worse(m_c.get(g), m_b.get(g)) for g in guards):
-                found = (cand, o, res_c, m_c, pl_c, img_c)
+                found = (cand, o, res_c, m_c, pl_c, img_c, per_c)
                 break
         what = ", ".join(f"{g} {m_b[g]:.6g} → {m_a[g]:.6g}" for g in bad)
         best_txt = ", ".join(f"{k} {v}" for k, v in fitted.items())
         if found is not None:
-            fitted, best_obj, res_a, m_a, pl_a, img_a = found
+            fitted, best_obj, res_a, m_a, pl_a, img_a, per_a = found
             s.notes.append(f"the search's best point ({best_txt}) lowered the {p.loss} loss but made compare's "
                            f"{what}: ended at {', '.join(f'{k} {v}' for k, v in fitted.items())}, part of the way "
                            f"from the start, which is no worse in {', '.join(guards)}")
@@ -318,10 +340,11 @@ def execute(p: Plan, frame, truth, budget: Budget, more=()) -> dict:
                            f"{what}: kept the start")
             fitted = {d.name: _clean(p.start[d.name]) for d in p.dims}
             best_obj = obj_before                # the start's objective, evaluated first by the search
-            res_a, m_a, pl_a, img_a = res_b, m_b, pl_b, img_b
+            res_a, m_a, pl_a, img_a, per_a = res_b, m_b, pl_b, img_b, per_b
     defaults = p.tech.defaults()
     nondefault = {k: _clean(v) for k, v in p.fixed.items() if v != defaults.get(k)}
     new_per_it = [h["kernels_new"] for h in hist]
+    scenes = _by_scene(obj, hist[0]["values"], fitted, per_b, per_a)
     return {
         "technique": p.tech.name, "method": p.method, "loss": obj.describe(),
         "params": {d.name: {**d.describe(), "start": _clean(p.start[d.name]), "fitted": fitted[d.name],
@@ -340,8 +363,29 @@ def execute(p: Plan, frame, truth, budget: Budget, more=()) -> dict:
         "notes": list(s.notes),
         "history": hist,
         "preset_values": {**nondefault, **fitted},
+        **({"scenes": scenes} if scenes else {}),
         "images": {"before": img_b, "after": img_a},
     }
+
+
+def _by_scene(obj, start: dict, fitted: dict, per_b: list, per_a: list) -> dict | None:
+    """{scene: {loss and objective before / after, frames, compare's metrics before / after}}
+    of a fit over several scenes (None for one scene): each scene's own mean over its frames,
+    with the start and the joint fitted values."""
+    names = list(dict.fromkeys(q.name for q in obj.parts))
+    if len(names) < 2:
+        return None
+    b, a = obj.by_scene(dict(start)), obj.by_scene(dict(fitted))
+    out = {}
+    for n in names:
+        idx = [i for i, q in enumerate(obj.parts) if q.name == n]
+        q = obj.parts[idx[0]]
+        out[n] = {"resolution": list(q.resolution), "frames": b[n]["frames"],
+                  "loss_before": b[n]["loss"], "loss_after": a[n]["loss"],
+                  "objective_before": b[n]["objective"], "objective_after": a[n]["objective"],
+                  "metrics_before": _mean_metrics([per_b[i] for i in idx]),
+                  "metrics_after": _mean_metrics([per_a[i] for i in idx])}
+    return out
 
 
 def prepare(scene: str, resolution=None, base: Path | None = None, frame: int | None = None, frames=None):
@@ -356,22 +400,110 @@ def prepare_frames(scene: str, resolution=None, base: Path | None = None, frame:
                    frames=None) -> list:
     """[(scene, truth, meta, frame)] of every selected frame of the camera path (one entry
     without ``frame`` / ``frames``): each frame's stored reference is required."""
-    sc0 = load_scene(scene, resolution)
-    sel = frame_list(sc0.spec, frame, frames)
-    out = []
-    for i in (sel or [None]):
-        sc = sc0 if i is None else sc0.at_frame(i)
-        truth, meta = store.load(sc.spec, sc.resolution, base)
-        out.append((sc, truth, meta, make_frame(sc, ss=int(meta.get("supersampling", 1)), seed=int(meta.get("seed", 0)))))
-    return out
+    return prepare_scenes([scene], resolution, base, frame=frame, frames=frames)[0]
 
 
-def fit(scene: str, technique: str | None = None, *, params=None, method: str = "auto", loss: str | None = None,
+def prepare_scenes(scenes: list, resolution=None, base: Path | None = None, frame: int | None = None,
+                   frames=None) -> list:
+    """[[(scene, truth, meta, frame)] per scene]: every reference of every scene and selected
+    frame is read before any frame is built, and those that are missing, stale or damaged are
+    one ReferenceError_ (exit 2) listing each (scene, resolution, frame) with the
+    ``shadowlab reference`` commands that make them (a single one: the store's own message)."""
+    loaded, problems = [], []
+    for scene in scenes:
+        sc0 = load_scene(scene, resolution)
+        sel = frame_list(sc0.spec, frame, frames)
+        got = []
+        for i in (sel or [None]):
+            sc = sc0 if i is None else sc0.at_frame(i)
+            try:
+                truth, meta = store.load(sc.spec, sc.resolution, base)
+            except ReferenceError_ as e:
+                missing = not store.path_for(sc.name, sc.resolution, base, frame=sc.frame).exists()
+                problems.append((sc, missing, e))
+                continue
+            got.append((sc, truth, meta))
+        loaded.append(got)
+    if len(problems) == 1:
+        raise problems[0][2]
+    if problems:
+        raise ReferenceError_(missing_references(problems))
+    return [[(sc, truth, meta, make_frame(sc, ss=int(meta.get("supersampling", 1)), seed=int(meta.get("seed", 0))))
+             for sc, truth, meta in got] for got in loaded]
+
+
+def missing_references(problems: list) -> str:
+    """The message for several references a fit lacks: each (scene, resolution, frame), then one
+    ``shadowlab reference A B -r WxH [--frames A:B | --frame N] [--force]`` per group of scenes
+    that share a resolution and frames (``--force`` for stale or damaged ones)."""
+    lines, groups = [], {}
+    for sc, missing, e in problems:
+        w, h = sc.resolution
+        at = f"{w}x{h}" + ("" if sc.frame is None else f" frame {sc.frame}")
+        lines.append(f"  {sc.name} {at}: " + ("missing" if missing else str(e).split(";")[0]))
+        groups.setdefault((tuple(sc.resolution), not missing, store.scene_arg(sc.spec)), []).append(sc.frame)
+    cmds, by = [], {}
+    for (res, force, arg), fr in groups.items():
+        by.setdefault((res, force, tuple(fr)), []).append(arg)
+    for (res, force, fr), args in by.items():
+        if fr == (None,):
+            sel = [""]
+        elif len(fr) > 1 and list(fr) == list(range(fr[0], fr[0] + len(fr))):
+            sel = [f" --frames {fr[0]}:{fr[-1]}"]
+        else:
+            sel = [f" --frame {f}" for f in fr]
+        cmds += [f"shadowlab reference {' '.join(args)} -r {res[0]}x{res[1]}{x}{' --force' if force else ''}"
+                 for x in sel]
+    return (f"{len(problems)} references this fit needs are missing or unusable:\n" + "\n".join(lines)
+            + "\nrender them with:\n" + "\n".join(f"  {c}" for c in cmds))
+
+
+def scene_names(scene) -> list[str]:
+    """SCENE or SCENE... as a list (a scene named twice is an InputError)."""
+    names = [scene] if isinstance(scene, (str, Path)) else list(scene or [])
+    names = [str(n) for n in names]
+    if not names:
+        raise InputError("no scene given: name one or more scenes (`shadowlab scenes` lists the built-in ones)")
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise InputError(f"scene {', '.join(dup)} named twice; name each scene once")
+    return names
+
+
+def joint_name(scenes: list[str], limit: int = 48) -> str:
+    """The name of a fit over ``scenes`` (reports, presets): their stems joined by ``+``, the
+    first ones and a count when that grows past ``limit`` characters.
+
+    >>> joint_name(["contact", "scenes/pp.toml"]), joint_name(["a" * 30, "b" * 30, "c"])
+    ('contact+pp', 'aaaaaaaaaaaaaaaaaaaaaaaaaaaaaa+2-more')
+    """
+    stems = [Path(s).stem for s in scenes]
+    name = "+".join(stems)
+    if len(name) <= limit:
+        return name
+    keep = stems[:1]
+    for st in stems[1:]:
+        if len("+".join(keep + [st])) + len(f"+{len(stems)}-more") > limit:
+            break
+        keep.append(st)
+    return "+".join(keep) + f"+{len(stems) - len(keep)}-more"
+
+
+def default_out(scene, technique: str | None, all_techniques: bool = False) -> str:
+    """``reports/fit/<scene>-<technique>``; several scenes: ``<s1>+<s2>…`` (:func:`joint_name`)."""
+    return f"reports/fit/{joint_name(scene_names(scene))}-{'all' if all_techniques else technique or 'fit'}"
+
+
+def fit(scene, technique: str | None = None, *, params=None, method: str = "auto", loss: str | None = None,
         all_techniques: bool = False, sets=None, preset=None, ranges=None, budget: Budget | None = None,
         out=None, save_preset=None, preset_name: str | None = None, resolution=None, base: Path | None = None,
-        echo=None, force: bool = False, frame: int | None = None, frames=None) -> dict:
-    """The ``shadowlab fit`` job. Returns the run dict (``mode`` "one" or "all") and writes the
-    report to ``out`` (if given) and the preset to ``save_preset`` (if given)."""
+        echo=None, force: bool = False, frame: int | None = None, frames=None, executor=None) -> dict:
+    """The ``shadowlab fit`` job. ``scene``: one scene or a list of them: one preset minimising
+    the mean over the scenes (and frames) of their objectives, with each scene's loss before and
+    after beside it. ``executor``: where the evaluations run (:func:`shadowlab.cluster.open_executor`;
+    default this process). Returns the run dict (``mode`` "one" or "all") and writes the report to
+    ``out`` (if given) and the preset to ``save_preset`` (if given)."""
+    scenes = scene_names(scene)
     budget = (budget or Budget()).check()
     if loss is not None:
         check_loss(loss)
@@ -395,12 +527,15 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
         R.check_out(Path(out), force, protected)
     if save_preset is not None:
         P.check_writable(save_preset, force, protected)
-    prepared = prepare_frames(scene, resolution, base, frame=frame, frames=frames)
+    per_scene = prepare_scenes(scenes, resolution, base, frame=frame, frames=frames)
+    prepared = [x for ps in per_scene for x in ps]
     sc, truth, meta, frame = prepared[0]
     more = [(f, t) for _, t, _, f in prepared[1:]]
+    parts = [Part.of(s_, base) for s_, *_ in prepared]
     plans, skipped = {}, {}
     for t in techs:
-        why = tbase.get(t).unsupported(sc.spec) if all_techniques else None
+        why = next((w for w in (tbase.get(t).unsupported(ps[0][0].spec) for ps in per_scene) if w), None) \
+            if all_techniques else None
         if why:
             skipped[t] = why
             continue
@@ -419,15 +554,18 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
         if echo:
             echo(f"fitting {t}: {', '.join(f'{d.name} ({d.method})' for d in p.dims)} ...")
         try:
-            results[t] = execute(p, frame, truth, budget, more)
+            results[t] = execute(p, frame, truth, budget, more, executor=executor, parts=parts)
         except ShadowlabError as e:               # e.g. a technique that cannot render this scene
             if not all_techniques:
                 raise
             skipped[t] = str(e)
     if not results:
         raise InputError("no technique could be fitted: " + "; ".join(f"{k}: {v}" for k, v in skipped.items()))
-    run = {"scene": sc.name, "resolution": list(sc.resolution), **({} if sc.frame is None else {"frame": sc.frame}),
-           **({"frames": [s_.frame for s_, *_ in prepared]} if len(prepared) > 1 else {}),
+    name = sc.name if len(scenes) == 1 else joint_name([ps[0][0].name for ps in per_scene])
+    run = {"scene": name, "resolution": list(sc.resolution), **({} if sc.frame is None else {"frame": sc.frame}),
+           **({"frames": [s_.frame for s_, *_ in per_scene[0]]} if len(per_scene[0]) > 1 else {}),
+           **({"scenes": [_scene_entry(ps, base) for ps in per_scene]} if len(scenes) > 1 else {}),
+           **({"executor": executor.describe()} if executor is not None and executor.kind != "embedded" else {}),
            "mode": "all" if all_techniques else "one",
            "method": method, "loss": loss or ", ".join(sorted({p.loss for p in plans.values()})),
            "budget": budget.__dict__,
@@ -436,7 +574,7 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
            "preset_in": pre.info() if pre else None, "skipped": skipped, "techniques": results,
            "lights": [l.name for l in sc.lights],
            "truth_images": {"shaded": truth.shaded, "vis": {n: lt.V for n, lt in truth.lights.items()}}}
-    pname = preset_name or (f"{sc.name}-{technique}-fit" if not all_techniques else f"{sc.name}-fit")
+    pname = preset_name or (f"{name}-{technique}-fit" if not all_techniques else f"{name}-fit")
     run["preset"] = {"name": pname, "values": {t: r["preset_values"] for t, r in results.items()}}
     if out is not None:
         run["out"] = str(R.write(Path(out), run, force, protected))
@@ -445,6 +583,15 @@ def fit(scene: str, technique: str | None = None, *, params=None, method: str = 
                protected=protected)
         run["preset"]["path"] = str(save_preset)
     return run
+
+
+def _scene_entry(prepared: list, base) -> dict:
+    """One scene of a multi-scene fit, for fit.json: name, resolution, frames, its references."""
+    sc = prepared[0][0]
+    return {"name": sc.name, "scene": store.scene_arg(sc.spec), "resolution": list(sc.resolution),
+            "frames": [s_.frame for s_, *_ in prepared],
+            "references": [{"path": str(_ref_path(s_, base)), "max_std_error": m.get("max_std_error"),
+                            "seed": m.get("seed")} for s_, _, m, _ in prepared]}
 
 
 def _ref_path(sc, base):

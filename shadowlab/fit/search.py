@@ -267,15 +267,22 @@ def adam(s: Search, dims: list, steps: int = 25, lr: float = 0.1, beta_1: float 
     """Adam on the unit-scaled ``dims`` from the current best point (module docstring)."""
     base = s.current
     opt = mi.ad.Adam(lr=lr, beta_1=beta_1, params={d.name: dr.opaque(mi.Float, d.to_unit(base[d.name])) for d in dims})
+    jobs = getattr(s.obj, "loss_grad", None)      # fit.parts.PartsObjective: the gradient comes back as floats
     for k in range(steps):
         opt.set_learning_rate(lr * decay ** (k / max(steps - 1, 1)))
-        xs = {d.name: d.from_unit_dr(opt[d.name]) for d in dims}
-        loss, _ = s.obj.loss_dr({**base, **xs})
-        dr.backward(loss)
+        if jobs is not None:
+            o, xs, grads = jobs(base, dims, {d.name: float(opt[d.name][0]) for d in dims})
+            for d in dims:
+                dr.set_grad(opt[d.name], dr.opaque(mi.Float, grads[d.name]))   # opaque: no kernel per value
+            vals = {**base, **xs}
+        else:
+            xs = {d.name: d.from_unit_dr(opt[d.name]) for d in dims}
+            loss, _ = s.obj.loss_dr({**base, **xs})
+            dr.backward(loss)
+            o = float(loss[0])
+            vals = {**base, **{n: float(x[0]) for n, x in xs.items()}}
+            grads = {d.name: float(dr.grad(opt[d.name])[0]) for d in dims}
         s.obj.gradients += 1
-        o = float(loss[0])
-        vals = {**base, **{n: float(x[0]) for n, x in xs.items()}}
-        grads = {d.name: float(dr.grad(opt[d.name])[0]) for d in dims}
         opt.step()
         for d in dims:
             opt[d.name] = dr.clip(opt[d.name], 0.0, 1.0)
