@@ -12,6 +12,21 @@ One estimator serves both sides of a comparison, so they differ only in visibili
 Samples: a k×k jittered grid on the emitter's 2D sample domain per round, random numbers
 from PCG32 seeded by (seed, round, point): same seed, same bits.
 
+Light ranges. A point or spot light with a ``range`` R (the scene format's influence radius) has
+its falloff windowed by
+
+    w(d) = clamp(1 − (d/R)⁴, 0, 1)²,   d = |x_light − x|, x_light the light's position (its centre)
+
+the windowing common in engines [Karis 2013] (Unreal Engine 4; Frostbite uses the same
+window [Lagarde 2014]): 1 at the light, 0 from d = R on, smooth at both ends. It is applied
+in one place, :func:`_loop`, to every sample's contribution (``window`` = :func:`range_window`,
+computed by :func:`sample_light` from the light's spec): ``U_L`` (:func:`unshadowed`) and every
+caller of :func:`sample_light` get it. d is measured from the light's centre, not from the
+sample on an area light, so w is one number per shading point: the truth's visibility ratio
+``V_L = ∫ f v / ∫ f`` is unchanged by it wherever w > 0, and beyond the range (∫ f = 0) it
+becomes the truth's "no light" value. Mitsuba's own ``direct`` integrator cannot window a light,
+so its image ignores ranges (``Scene.mitsuba_notes``).
+
 Shadow rays are Mitsuba's ``ray_test``, except in a scene with alpha-tested casters
 (``scene.has_alpha``): ``ray_test`` ignores BSDF opacity, so there :func:`occluded_alpha`
 intersects and continues through transparent texels (a symbolic loop; slower, so only there).
@@ -35,6 +50,34 @@ def _hash32(*vals) -> int:
     return h
 
 
+def window(d, light_range):
+    """The range window w(d) = clamp(1 − (d/R)⁴, 0, 1)² [Karis 2013] (module docstring), Dr.Jit
+    or Python floats; ``light_range`` R > 0."""
+    t = d / light_range
+    t2 = t * t
+    c = dr.clip(1.0 - t2 * t2, 0.0, 1.0)
+    return c * c
+
+
+def range_window(light, p):
+    """w(|x_light − p|) of ``light`` (a LightSpec) at the points ``p`` (mi.Point3f), or None for a
+    light without a range (no window). The range enters opaquely (one kernel for every range)."""
+    rng = getattr(light, "range", None)
+    if rng is None:
+        return None
+    c = mi.Point3f(*[float(x) for x in light.position])
+    return window(dr.norm(mi.Point3f(p) - c), dr.opaque(mi.Float, float(rng)))
+
+
+def _light_of(scene, emitter):
+    """The LightSpec whose Mitsuba emitter is ``emitter`` (None if ``scene`` has no such light)."""
+    spec = getattr(scene, "spec", None)
+    for name, e in getattr(scene, "emitters", {}).items():
+        if e is emitter and spec is not None:
+            return spec.light(name)
+    return None
+
+
 def sample_light(scene, si, emitter, k: int, seed: int, rnd: int, shadow: bool, stratified: bool = True):
     """One round of k×k stratified samples of ``emitter`` at every interaction of ``si``
     (``stratified=False``: k² independent uniform samples, for comparison in the benchmark).
@@ -42,6 +85,7 @@ def sample_light(scene, si, emitter, k: int, seed: int, rnd: int, shadow: bool, 
     Returns Dr.Jit arrays per point: ``f`` (Color3f, Σ of bsdf·Le·cos/pdf over the samples,
     i.e. k² times the unshadowed estimate), ``fv`` (Float, Σ |f|·v), ``fsum`` (Float, Σ |f|)
     and ``v`` (Float, number of unoccluded samples). Visibility is only traced when ``shadow``.
+    A light with a ``range`` has every sample's contribution windowed (:func:`range_window`).
     """
 
     n = dr.width(si.p)
@@ -49,7 +93,9 @@ def sample_light(scene, si, emitter, k: int, seed: int, rnd: int, shadow: bool, 
     # opaque: a literal seed would be baked into the kernel and compile a new one every round
     rng = mi.PCG32(n, dr.opaque(mi.UInt64, _hash32(seed, rnd)), mi.UInt64(idx))
     alpha = bool(shadow and getattr(scene, "has_alpha", False))
-    return _loop(scene.mi_scene, si, emitter, rng, mi.UInt32(k), shadow, stratified, alpha)
+    light = _light_of(scene, emitter)
+    win = range_window(light, si.p) if light is not None else None
+    return _loop(scene.mi_scene, si, emitter, rng, mi.UInt32(k), shadow, stratified, alpha, win)
 
 
 MAX_ALPHA_LAYERS = 64  # transparent texels a shadow ray may pass; a ray still on one after that is blocked
@@ -80,7 +126,9 @@ def occluded_alpha(mi_scene, ray, active):
 
 
 @dr.syntax
-def _loop(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False):
+def _loop(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False, win=None):
+    """k² samples of ``emitter`` at ``si`` (see :func:`sample_light`); ``win``: per-point range
+    window (:func:`range_window`) multiplying every sample's contribution, None = none."""
     ctx = mi.BSDFContext()
     bsdf = si.bsdf()
     n = dr.width(si.p)
@@ -102,6 +150,8 @@ def _loop(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False):
         fs = bsdf.eval(ctx, si, wo, si.is_valid())
         c = fs * w
         c = dr.select(si.is_valid() & (ds.pdf > 0), c, 0.0)
+        if win is not None:
+            c = c * win
         mag = c.x + c.y + c.z
         if shadow:
             if not alpha:

@@ -130,19 +130,28 @@ class Scene:
 
     def mitsuba_notes(self) -> dict:
         """Caveats of Mitsuba's own ``direct`` integrator image (``mi.render``) for this scene, for a
-        reference's meta.json; empty when there are none.
+        reference's meta.json; empty when there are none. Lights with a ``range``: ``direct`` cannot
+        window a light's falloff, so its image ignores ranges (``mitsuba_direct_ignores_range``).
 
         Measured on mitsuba 3.9.1: ``direct`` shadow rays are ``ray_test``, which ignores a
         ``mask`` BSDF's opacity, so an alpha-tested card casts the shadow of its whole quad; its
         camera rays stop on the card too (a hole shows the card's BSDF times opacity 0, i.e. black,
         not what lies behind). Shadowlab's own truth (V, shaded) sees through the holes."""
-        if not self.has_alpha:
-            return {}
-        return {"mitsuba_direct_ignores_alpha": (
-            "scene has alpha-tested shapes (mask BSDF): Mitsuba's direct integrator (the mitsuba.* "
-            "channels) does not see through their transparent texels: shadow rays (ray_test) are "
-            "blocked by the whole card and camera rays stop on it (holes render black). Compare "
-            "with the V.* and shaded.* channels, which do see through them.")}
+        notes = {}
+        if self.has_alpha:
+            notes["mitsuba_direct_ignores_alpha"] = (
+                "scene has alpha-tested shapes (mask BSDF): Mitsuba's direct integrator (the mitsuba.* "
+                "channels) does not see through their transparent texels: shadow rays (ray_test) are "
+                "blocked by the whole card and camera rays stop on it (holes render black). Compare "
+                "with the V.* and shaded.* channels, which do see through them.")
+        ranged = [l.name for l in self.spec.lights if getattr(l, "range", None) is not None]
+        if ranged:
+            notes["mitsuba_direct_ignores_range"] = (
+                f"lights with a range ({', '.join(ranged)}): Mitsuba's direct integrator (the mitsuba.* "
+                "channels) has no light range, so it lights every point with the unwindowed falloff; "
+                "the shaded.* channels (and U) use the windowed falloff w(d) = clamp(1 − (d/range)^4, 0, 1)^2 "
+                "of render/shading.py. Compare with the V.* and shaded.* channels.")
+        return notes
 
     @property
     def name(self):

@@ -171,6 +171,7 @@ class LightSpec:
     shadow_map: int = 512
     depth_bits: int = 32
     near: float | None = None
+    range: float | None = None   # point / spot: influence radius (m), windowed falloff; None = unbounded
 
     @property
     def physical_size(self) -> float:
@@ -266,6 +267,9 @@ class SceneSpec:
                 d["camera"].pop(k)
         if not d["sdf"]:  # absent unless used: scenes without [[sdf]] hash as before the key existed
             d.pop("sdf")
+        for l in d["lights"]:  # absent unless used: lights without a range hash as before the key existed
+            if l["range"] is None:
+                l.pop("range")
         if d["path"] is None:  # absent unless used: a scene without a camera path hashes as before paths existed
             d.pop("path")
             d.pop("frame")
@@ -321,8 +325,8 @@ LIGHT_KEYS = {
     "rect": _LIGHT_COMMON + ("position", "target", "up", "size", "radiance", "near"),
     "disk": _LIGHT_COMMON + ("position", "target", "up", "radius", "radiance", "near"),
     "sphere": _LIGHT_COMMON + ("position", "radius", "radiance", "near"),
-    "spot": _LIGHT_COMMON + ("position", "target", "up", "radius", "angle", "radiance", "intensity", "near"),
-    "point": _LIGHT_COMMON + ("position", "radius", "radiance", "intensity", "near"),
+    "spot": _LIGHT_COMMON + ("position", "target", "up", "radius", "angle", "radiance", "intensity", "near", "range"),
+    "point": _LIGHT_COMMON + ("position", "radius", "radiance", "intensity", "near", "range"),
     "directional": _LIGHT_COMMON + ("direction", "up", "angular_diameter", "irradiance"),
 }
 _LIGHT_SIZE_KEY = {"rect": "size", "disk": "radius", "sphere": "radius", "spot": "radius", "point": "radius",
@@ -518,6 +522,11 @@ def _light(path: str, i: int, lt, names: set) -> LightSpec:
             kw["radius"] = r.num("radius", default=0.0, lo=0.0)
         if kind == "spot":
             kw["angle"] = r.num("angle", default=30.0, lo=1.0, hi=80.0)
+        if r.has("range"):  # only point and spot take it (_kind_keys refused it on the other kinds)
+            kw["range"] = r.num("range")
+            if kw["range"] <= 0:
+                r.fail("range", "a number > 0 (the light's influence radius in metres; leave it out for an "
+                       "unbounded light)", kw["range"])
         if kind in ("spot", "point"):  # radius 0: a delta light, which has an intensity and no radiance
             if kw["radius"] == 0 and r.has("radiance"):
                 r.fail("radiance", f"no radiance on a {kind} light of radius 0 (a delta light has no area): give "
