@@ -22,6 +22,7 @@ import typer
 
 from . import backend
 from .bench import run as run_bench
+from .cluster import SCHEDULER_ENV, open_executor
 from .errors import INTERNAL_ERROR, GateFailure, InputError, Interrupted, ShadowlabError
 from .exchange.export import export_scene
 from .api import techniques_for
@@ -29,17 +30,21 @@ from .exchange.ingest import default_out
 from .exchange.ingest import ingest as run_ingest
 from .fit import Budget
 from .fit import fit as run_fit
+from .fit.run import default_out as fit_default_out
 from .fit.preset import load as load_preset
 from .fit.report import summary_table as fit_table
 from .gate.runner import run_gate_file
 from .pipeline import compare as cmp
 from .pipeline import parse_resolution
-from .pipeline import reference_frames as ref_frames
+from .pipeline import reference_batch
 from .reference.truth import SEED_MAX
 from .reference.store import list_references
 from .report import summary_table
 from .report.frames import frames_summary
 from .scene.spec import builtin_names, load_spec, resolve
+from .sweep import default_out as sweep_default_out
+from .sweep import summary_markdown as sweep_summary
+from .sweep import sweep as run_sweep
 from .techniques import base
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -122,8 +127,16 @@ def techniques(markdown: bool = typer.Option(False, "--markdown", help="Print Ma
                        f"{'diff' if p.differentiable else '    '}  {p.doc}")
 
 
+WorkersOpt = typer.Option(None, "--workers", help="Run the jobs on a local Dask cluster of N worker processes "
+                          "(default: in this process).")
+SchedulerOpt = typer.Option(None, "--scheduler", help="Run the jobs on an existing Dask cluster: tcp://HOST:8786 "
+                            f"(default: ${SCHEDULER_ENV}).")
+
+
 @app.command()
-def reference(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
+def reference(scenes_: Optional[List[str]] = typer.Argument(None, metavar="SCENE...", help="Built-in scene names "
+                                                            "or paths to .toml scenes."),
+              all_: bool = typer.Option(False, "--all", help="Every built-in scene."),
               resolution: Optional[str] = typer.Option(None, "--resolution", "-r", help="WxH (default: the scene's)."),
               force: bool = typer.Option(False, "--force", help="Replace an existing reference."),
               seed: int = typer.Option(0, "--seed", callback=_number(0, SEED_MAX, what="a seed"),
@@ -135,14 +148,29 @@ def reference(scene: str = typer.Argument(..., help="Built-in scene name or path
               ss: int = typer.Option(1, "--ss", min=1, max=8, help="s×s shading points per pixel (supersampling)."),
               max_rounds: int = typer.Option(64, "--max-rounds", min=1, max=4096, help="Round cap of a penumbra "
                                              "pixel (8×8 shadow rays per round per light)."),
-              frame: Optional[int] = FrameOpt, frames: Optional[str] = FramesOpt,
+              frame: Optional[int] = FrameOpt,
+              frames: Optional[str] = typer.Option(None, "--frames", help="Frames A:B of each scene's camera path, "
+                                                   "both ends included, or all (every frame of each path)."),
+              workers: Optional[int] = WorkersOpt, scheduler: Optional[str] = SchedulerOpt,
               variant: Optional[str] = VariantOpt):
-    """Render and store the Mitsuba ground truth of a scene (of each frame of a camera path: --frames)."""
+    """Render and store the Mitsuba ground truth of scenes (of each frame of a camera path: --frames)."""
     _init(variant)
-    done = ref_frames(scene, parse_resolution(resolution), frames, frame=frame, force=force, seed=seed,
-                      target_se=target_se, spp=spp, ss=ss, max_rounds=max_rounds, progress=_progress())
-    for _, path, meta in done:
+    names = _scene_list(scenes_, all_)
+    with open_executor(workers, scheduler) as ex:
+        done = reference_batch(names, parse_resolution(resolution), frames, frame=frame, force=force, seed=seed,
+                               target_se=target_se, spp=spp, ss=ss, max_rounds=max_rounds, progress=_progress(),
+                               executor=ex)
+    for _, _, path, meta in done:
         _reference_done(path, meta)
+    if len(done) > 1:
+        typer.echo(f"{len(done)} references ({ex.kind}, {ex.workers} worker{'s' if ex.workers > 1 else ''})")
+
+
+def _scene_list(scenes_, all_: bool) -> list[str]:
+    """SCENE... or --all (not both)."""
+    if all_ and scenes_:
+        raise InputError(f"--all and scene names ({', '.join(scenes_)}): give one of them")
+    return builtin_names() if all_ else list(scenes_ or [])
 
 
 def _reference_done(path, meta):
@@ -223,7 +251,8 @@ def demo(out: str = typer.Option("reports/demo", "--out", "-o"), force: bool = F
 
 
 @app.command()
-def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
+def fit(scenes_: List[str] = typer.Argument(..., metavar="SCENE...", help="Built-in scene names or paths to .toml "
+                                             "scenes; several: one preset minimising the mean loss over them."),
         technique: Optional[str] = typer.Option(None, "--technique", "-t", help="The technique to fit (all: as --all)."),
         params: Optional[str] = typer.Option(None, "--params", "-p", help="Comma-separated parameters to fit "
                                              "(default: the differentiable ones; hard: biases; pcf: kernel, softness)."),
@@ -240,7 +269,8 @@ def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a 
         evals: int = typer.Option(20, "--evals", help="Evaluations per 1-D golden-section search."),
         grid_points: int = typer.Option(21, "--grid-points", help="Grid points per parameter (--method grid)."),
         rounds: int = typer.Option(0, "--rounds", help="Coordinate rounds over the parameters (0: automatic)."),
-        out: Optional[str] = typer.Option(None, "--out", "-o", help="Report directory (default reports/fit/SCENE-TECHNIQUE)."),
+        out: Optional[str] = typer.Option(None, "--out", "-o", help="Report directory (default reports/fit/SCENE-TECHNIQUE, "
+                                          "several scenes: SCENE1+SCENE2…-TECHNIQUE)."),
         save_preset: Optional[str] = typer.Option(None, "--save-preset", help="Also write the fitted preset to this "
                                                   "file (an existing file only if shadowlab fit wrote it, or --force)."),
         preset_name: Optional[str] = typer.Option(None, "--preset-name", help="Name of the saved preset."),
@@ -250,20 +280,48 @@ def fit(scene: str = typer.Argument(..., help="Built-in scene name or path to a 
         frame: Optional[int] = FrameOpt,
         frames: Optional[str] = typer.Option(None, "--frames", help="A:B, frames of the camera path (both ends "
                                              "included): one preset minimising the mean loss over them."),
+        workers: Optional[int] = WorkersOpt, scheduler: Optional[str] = SchedulerOpt,
         variant: Optional[str] = VariantOpt):
-    """Fit technique parameters to the ground truth; write DIR/fit.json, index.html, summary.md, preset.toml."""
+    """Fit technique parameters to the ground truth; write DIR/fit.json, index.html, summary.md, preset.toml.
+    Several scenes: one preset for all of them, each scene's loss beside it; each evaluation is one job
+    per scene frame (--workers / --scheduler: on a Dask cluster, same results)."""
     _init(variant)
     if technique == "all":              # -t all: every technique that applies (the others listed with the reason)
         technique, all_ = None, True
-    out = out or f"reports/fit/{Path(scene).stem}-{'all' if all_ else technique or 'fit'}"
-    run = run_fit(scene, technique, params=params, method=method, loss=loss, all_techniques=all_, sets=set_,
-                  preset=preset, ranges=range_, budget=Budget(steps, lr, evals, grid_points, rounds), out=out,
-                  save_preset=save_preset, preset_name=preset_name, resolution=parse_resolution(resolution),
-                  echo=lambda m: typer.echo(m, err=True), force=force, frame=frame, frames=frames)
+    out = out or fit_default_out(scenes_, technique, all_)
+    with open_executor(workers, scheduler) as ex:
+        run = run_fit(scenes_, technique, params=params, method=method, loss=loss, all_techniques=all_, sets=set_,
+                      preset=preset, ranges=range_, budget=Budget(steps, lr, evals, grid_points, rounds), out=out,
+                      save_preset=save_preset, preset_name=preset_name, resolution=parse_resolution(resolution),
+                      echo=lambda m: typer.echo(m, err=True), force=force, frame=frame, frames=frames, executor=ex)
     typer.echo(fit_table(run))
     typer.echo(f"report: {run['out']}")
     if save_preset:
         typer.echo(f"preset: {save_preset}")
+
+
+@app.command()
+def sweep(scenes_: List[str] = typer.Argument(..., metavar="SCENE...", help="Built-in scene names or paths to "
+                                              ".toml scenes (each needs its stored reference)."),
+          technique: str = typer.Option(..., "--technique", "-t", help="The technique whose parameter is swept."),
+          param: str = typer.Option(..., "--param", "-p", help="NAME=LO:HI:N: N >= 2 values from LO to HI (both "
+                                    "included; int parameters rounded, duplicates merged); add :log for log spacing."),
+          set_: List[str] = typer.Option([], "--set", help="TECHNIQUE.PARAM=VALUE: the other parameters, fixed "
+                                         "(repeatable; default: their declared defaults)."),
+          resolution: Optional[str] = typer.Option(None, "--resolution", "-r", help="WxH (default: the scene's)."),
+          frame: Optional[int] = FrameOpt,
+          out: Optional[str] = typer.Option(None, "--out", "-o", help="Report directory (default "
+                                            "reports/sweep/TECHNIQUE-PARAM)."),
+          force: bool = ForceOpt,
+          workers: Optional[int] = WorkersOpt, scheduler: Optional[str] = SchedulerOpt,
+          variant: Optional[str] = VariantOpt):
+    """Every metric of a technique against one parameter, per scene; write sweep.json, summary.md, index.html."""
+    _init(variant)
+    out = out or str(sweep_default_out(technique, param))
+    rec = run_sweep(scenes_, technique, param, sets=set_, resolution=parse_resolution(resolution), frame=frame,
+                    out=Path(out), force=force, workers=workers, scheduler=scheduler, progress=_progress())
+    typer.echo(sweep_summary(rec))
+    typer.echo(f"report: {rec['report']}")
 
 
 @app.command()
@@ -349,7 +407,9 @@ def gate(gatefile: str = typer.Argument(..., help="Gate file (TOML), e.g. refere
 def bench(out: str = typer.Option("reports/bench", "--out", "-o"),
           quick: bool = typer.Option(False, "--quick", help="Small sizes (a smoke run, not for figures)."),
           only: Optional[str] = typer.Option(None, "--only", help="Run one part: sdf (SDF soft shadows, sdf.md), cascades (cascaded shadow maps, cascades.md), "
-                                "virtual (virtual shadow maps, virtual.md) or dpsv (shadow maps fused with deep partitioned shadow volumes, dpsv.md)."),
+                                "virtual (virtual shadow maps, virtual.md), dpsv (shadow maps fused with deep partitioned shadow volumes, dpsv.md) "
+                                "scaling (the Dask executor on 1, 2, 4, 8 workers, scaling.md; not in the full run) or truth (the ground "
+                                "truth's throughput against raw ray_test, truth.md)."),
           variant: Optional[str] = VariantOpt):
     """Measure ground-truth throughput and technique compile / warm run times."""
     _init(variant)
