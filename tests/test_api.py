@@ -107,3 +107,13 @@ def test_no_api_name_shadows_a_subpackage():
     import shadowlab.render.frame as frame_module
     import shadowlab.techniques.pcf as pcf_module
     assert frame_module.make_frame and pcf_module.PCF_PARAMS
+
+
+def test_shadow_maps_do_not_apply_to_sdf_only_scenes():
+    """Shadow maps are Mitsuba ray casts from the light, which miss SDF-only objects: ``-t all``
+    (``techniques_for``) must skip them with the reason rather than fail mid-run."""
+    why = shadowlab.techniques_for("mandelbulb")
+    for n in ("hard", "pcf", "pcss", "vsm", "csm", "vtsm", "ssss", "sm_dpsv"):
+        assert why[n] and "SDF-only" in why[n], n
+    assert why["sdf_hard"] is None
+    assert all(v is None or "SDF-only" not in v for v in shadowlab.techniques_for("contact").values())

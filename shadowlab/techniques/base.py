@@ -184,6 +184,16 @@ def light_scale_param(source: str, differentiable: bool = True, doc: str = "") -
                    doc=LIGHT_SCALE.doc + (f": {doc}" if doc else ""))
 
 
+def needs_mitsuba_geometry(name: str, spec) -> str | None:
+    """The reason a technique that casts Mitsuba rays from the light (every shadow map) cannot
+    render ``spec``: SDF-only objects, which Mitsuba does not see; None for other scenes."""
+    if spec.kind == "sdf":
+        return (f"{name}: the scene has SDF-only objects ([[sdf]]) that Mitsuba does not see, so shadow maps "
+                "(Mitsuba ray casts from the light) would miss them: use the SDF techniques (sdf_hard, sdf_quilez, "
+                "...) on it, or this technique on a scene with Mitsuba twins")
+    return None
+
+
 class Technique:
     """Base class. Subclasses set ``name``, ``title``, ``source`` and ``params`` and implement
     the per-light part :meth:`render_light` (and, optionally, :meth:`prepare`, once per render,
@@ -236,6 +246,7 @@ class Technique:
         does not handle; None (the default) when it can. ``demo`` and the bench skip such pairs;
         :meth:`render` refuses them with that text (InputError)."""
         return None
+
 
     # -- the family's part ---------------------------------------------------------------------
     def prepare(self, frame, values: dict, ctx: RenderContext) -> None:

@@ -104,7 +104,7 @@ import numpy as np
 from ..errors import InputError
 from ..render.lightview import FrustumSlice, SceneSphere
 from . import esm, evsm, msm, pcf, pcss, shadow_map, vsm  # noqa: F401  (register the filter families)
-from .base import _REGISTRY, LightResult, Param, RenderContext, Technique, param_table_markdown, register
+from .base import _REGISTRY, LightResult, Param, needs_mitsuba_geometry, RenderContext, Technique, param_table_markdown, register
 from .shadow_map import (BIAS_PARAMS, Points, SubFrame, check_map_params, map_entry, map_layers, map_settings,
                          map_stats)
 
@@ -269,6 +269,8 @@ class CSM(Technique):
 
     # -- the scenes it renders -------------------------------------------------------------------
     def unsupported(self, spec) -> str | None:
+        if why := needs_mitsuba_geometry(self.name, spec):
+            return why
         for l in spec.lights:
             if l.kind != "directional":
                 return (f"csm: light {l.name!r} is a {l.kind} light; cascaded shadow maps split the camera frustum "

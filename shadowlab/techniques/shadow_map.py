@@ -104,7 +104,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..render.tiles import TiledView
-from .base import LightResult, Param, Technique, param_table_markdown, register
+from .base import LightResult, Param, Technique, needs_mitsuba_geometry, param_table_markdown, register
 
 SOURCE = "[Buljan 2020, §2.3]"
 RES_MIN, RES_MAX = 64, 8192
@@ -397,6 +397,9 @@ class ShadowMapTechnique(Technique):
         values = super().resolve(overrides)
         check_map_params(values, self.name)
         return values
+
+    def unsupported(self, spec) -> str | None:
+        return needs_mitsuba_geometry(self.name, spec)
 
     def filter(self, view, rec: dict, bias: Bias, values: dict):  # pragma: no cover - interface
         raise NotImplementedError

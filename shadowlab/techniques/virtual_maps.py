@@ -90,7 +90,7 @@ from ..errors import InputError
 from ..render.gbuffer import vec_numpy
 from ..render.lightview import FrustumSlice, LightSquare, SceneSphere, light_frame, projection
 from ..render.tiles import Tiles, assign_tiles, cells_of, face_ndc, render_tiles, tile_groups
-from .base import _REGISTRY, LightResult, Param, Technique, param_table_markdown, register
+from .base import _REGISTRY, LightResult, Param, needs_mitsuba_geometry, Technique, param_table_markdown, register
 from .cascades import CSM_PARAMS, shadow_range
 from .shadow_map import (BIAS_PARAMS, Points, SubFrame, depth_test, map_settings, opaque_bias, receiver,
                          texel_index)
@@ -473,6 +473,8 @@ class VirtualMap(Technique):
     source = SOURCE
 
     def unsupported(self, spec) -> str | None:
+        if why := needs_mitsuba_geometry(self.name, spec):
+            return why
         for l in spec.lights:
             if l.kind != "directional":
                 return (f"{self.name}: light {l.name!r} is a {l.kind} light; this virtual shadow map tiles the "
