@@ -45,11 +45,11 @@ SWEEP = ("pcf", "softness", 0.5, 4.0)
 #: per configuration: reference resolution, truth options, sweep points and scenes
 CONFIGS = {
     "quick": {"resolution": (48, 48), "scenes": ("contact", "parallel_planes", "boulevard"), "spp": 0,
-              "target_se": 0.02, "sweep_points": 4, "sweep_scenes": 2},
+              "target_se": 0.02, "sweep_points": 4, "sweep_scenes": 2, "sweep_resolution": (48, 48)},
     "cpu": {"resolution": (128, 128), "scenes": None, "spp": 16, "target_se": 0.01, "sweep_points": 16,
-            "sweep_scenes": 4},
+            "sweep_scenes": 4, "sweep_resolution": (128, 128)},
     "gpu": {"resolution": (1920, 1080), "scenes": None, "spp": 64, "target_se": 0.005, "sweep_points": 64,
-            "sweep_scenes": 8},
+            "sweep_scenes": 8, "sweep_resolution": (480, 270)},
 }
 
 
@@ -87,8 +87,8 @@ def _references(ex, scenes, cfg, base: Path) -> float:
 def _sweep(ex, scenes, cfg, base: Path) -> tuple[float, dict]:
     t, name, lo, hi = SWEEP
     t0 = time.perf_counter()
-    rec = sweep(scenes, t, f"{name}={lo}:{hi}:{cfg['sweep_points']}", resolution=cfg["resolution"], executor=ex,
-                base=base)
+    rec = sweep(scenes, t, f"{name}={lo}:{hi}:{cfg['sweep_points']}", resolution=cfg["sweep_resolution"],
+                executor=ex, base=base)
     return time.perf_counter() - t0, results_only(rec)
 
 
@@ -115,8 +115,9 @@ def run(out: Path, quick: bool = False) -> Path:
     tmp = Path(tempfile.mkdtemp(prefix="shadowlab-scaling-"))
     res = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": backend.machine_info(),
            "quick": quick, "config": {**cfg, "scenes": scenes}, "sweep": SWEEP, "runs": []}
+    out = Path(out)
+    stem = "scaling-cuda" if cuda else "scaling"
     try:
-        first = None
         base = tmp / "embedded"
         _warm_up(None, scenes, tmp / "warm")
         res["runs"].append({"executor": "embedded", "workers": 1, "references_s": _references(None, scenes, cfg, base)})
@@ -124,8 +125,12 @@ def run(out: Path, quick: bool = False) -> Path:
         res["references"] = len(first)
         swept = sweep_scenes(scenes, cfg["sweep_scenes"])
         res["sweep_scenes"] = swept
+        if cfg["sweep_resolution"] != cfg["resolution"]:     # the sweep's truths, untimed
+            reference_batch(swept, cfg["sweep_resolution"], executor=None, base=base, progress=False, seed=0,
+                            spp=0, target_se=cfg["target_se"])
         _sweep(None, swept, {**cfg, "sweep_points": 2}, base)     # compiles the technique's kernels, untimed
         res["runs"][0]["sweep_s"], first_sweep = _sweep(None, swept, cfg, base)
+        md = _write(res, out, stem)
         for n in counts:
             t0 = time.perf_counter()
             with open_executor(workers=n) as ex:
@@ -140,16 +145,21 @@ def run(out: Path, quick: bool = False) -> Path:
                 row["sweep_s"], got = _sweep(ex, swept, cfg, base)
                 row["sweep_same_bits"] = got == first_sweep
             res["runs"].append(row)
+            md = _write(res, out, stem)   # after every row: a run cut short keeps what it measured
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    one = next(r for r in res["runs"] if r["workers"] == 1 and r["executor"] == "dask")
+    return md
+
+
+def _write(res: dict, out: Path, stem: str) -> Path:
+    """Speed-ups against the one-worker Dask run (before it exists: the embedded run); ``out/STEM.json``
+    and ``.md``."""
+    one = next((r for r in res["runs"] if r["workers"] == 1 and r["executor"] == "dask"), res["runs"][0])
     for r in res["runs"]:
         for w in ("references", "sweep"):
             r[f"{w}_speedup"] = one[f"{w}_s"] / r[f"{w}_s"]
             r[f"{w}_efficiency"] = r[f"{w}_speedup"] / r["workers"]
-    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    stem = "scaling-cuda" if cuda else "scaling"
     write_json_atomic(out / f"{stem}.json", res)
     return write_bytes_atomic(out / f"{stem}.md", _markdown(res).encode())
 
@@ -166,7 +176,8 @@ def _markdown(res: dict) -> str:
              + f" and every frame of the camera paths) at {W}×{H}, target standard error {c['target_se']}, "
              f"{c['spp']} spp Mitsuba image;",
              f"- sweep: `{t}.{name}` = {lo}…{hi}, {c['sweep_points']} points on {len(res['sweep_scenes'])} scenes "
-             f"({', '.join(res['sweep_scenes'])}): {c['sweep_points'] * len(res['sweep_scenes'])} jobs.", "",
+             f"({', '.join(res['sweep_scenes'])}) at {c['sweep_resolution'][0]}×{c['sweep_resolution'][1]}: "
+             f"{c['sweep_points'] * len(res['sweep_scenes'])} jobs.", "",
              "Speed-up and efficiency against one Dask worker; the cluster's start-up is not in the times.", "",
              "| executor | workers | start-up (s) | references (s) | speed-up | efficiency | same bits "
              "| sweep (s) | speed-up | efficiency | same bits |",

@@ -147,9 +147,10 @@ class SweepPoint:
     digest: str
     base: str
     index: int = 0
+    truth_sha256: str | None = None   # the stored truth's checksum: a re-rendered truth is a new cache entry
 
 
-#: per process: (scene, resolution, frame, digest, base) -> [scene, truth, meta, FrameContext or None]
+#: per process: (scene, resolution, frame, digest, base, truth checksum) -> [scene, truth, meta, FrameContext or None]
 _CACHE: OrderedDict = OrderedDict()
 _CACHE_SIZE = 2
 
@@ -159,7 +160,7 @@ def clear_cache() -> None:
 
 
 def _key(pt: SweepPoint) -> tuple:
-    return pt.scene, tuple(pt.resolution), pt.frame, pt.digest, pt.base
+    return pt.scene, tuple(pt.resolution), pt.frame, pt.digest, pt.base, pt.truth_sha256
 
 
 def load_context(pt: SweepPoint) -> list:
@@ -182,8 +183,13 @@ def load_context(pt: SweepPoint) -> list:
 
 def remember(pt: SweepPoint, sc, truth, meta) -> None:
     """Put a scene and its truth, already loaded and checked (by :func:`shadowlab.sweep.sweep_jobs`),
-    into this process's cache, so that points run here do not read the truth again."""
-    _CACHE[_key(pt)] = [sc, truth, meta, None]
+    into this process's cache, so that points run here do not read the truth again (an entry already
+    there for the same scene and truth is kept, with its FrameContext and light views)."""
+    k = _key(pt)
+    if k in _CACHE:
+        _CACHE.move_to_end(k)
+        return
+    _CACHE[k] = [sc, truth, meta, None]
     while len(_CACHE) > _CACHE_SIZE:
         _CACHE.popitem(last=False)
 

@@ -74,7 +74,7 @@ def sweep_jobs(scenes, technique: str, param: str, sets=None, resolution=None, f
         for v in rng.values:
             params = tuple(sorted({**overrides, rng.param.name: v}.items()))
             jobs.append(SweepPoint(technique, _scene_arg(scene), tuple(sc.resolution), sc.frame, params,
-                                   sc.spec.digest(), str(root), len(jobs)))
+                                   sc.spec.digest(), str(root), len(jobs), meta.get(store.CHECKSUM_KEY)))
         remember(jobs[-1], sc, truth, meta)      # points run in this process reuse what was just read
     return rng, fixed, infos, jobs
 
