@@ -407,7 +407,8 @@ def gate(gatefile: str = typer.Argument(..., help="Gate file (TOML), e.g. refere
 def bench(out: str = typer.Option("reports/bench", "--out", "-o"),
           quick: bool = typer.Option(False, "--quick", help="Small sizes (a smoke run, not for figures)."),
           only: Optional[str] = typer.Option(None, "--only", help="Run one part: sdf (SDF soft shadows, sdf.md), cascades (cascaded shadow maps, cascades.md), "
-                                "virtual (virtual shadow maps, virtual.md), dpsv (shadow maps fused with deep partitioned shadow volumes, dpsv.md) "
+                                "virtual (virtual shadow maps, virtual.md), dpsv (shadow maps fused with deep partitioned shadow volumes, dpsv.md), "
+                                "ssss (layered screen-space soft shadows against kernel and lights, ssss.md), "
                                 "scaling (the Dask executor on 1, 2, 4, 8 workers, scaling.md; not in the full run) or truth (the ground "
                                 "truth's throughput against raw ray_test, truth.md)."),
           variant: Optional[str] = VariantOpt):

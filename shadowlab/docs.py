@@ -5,7 +5,7 @@
 The bench section is copied from reports/bench/bench.md (and sdf.md, cascades.md and cascades-cuda.md, a GPU run of the cascades part, after it) when that file exists;
 the virtual shadow maps' section (``bench-virtual``) from reports/bench/virtual.md and virtual-cuda.md
 (``shadowlab bench --only virtual`` on the CPU and on a GPU) when either exists, so that part can be
-measured and regenerated alone; the DPSV family's (``bench-dpsv``) likewise from dpsv.md. A part's plot stays beside it in reports/: the README keeps its tables.
+measured and regenerated alone; the DPSV family's (``bench-dpsv``) layered SSSS's (``bench-ssss``), the truth's throughput (``bench-truth``) and the Dask executor's scaling (``bench-scaling``) likewise from dpsv.md, ssss.md, truth.md and scaling.md. A part's plot stays beside it in reports/: the README keeps its tables.
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ def bench_part_section(part: str) -> str | None:
 
 
 #: bench parts with a README section of their own (``<!-- bench-PART:begin -->``)
-OWN_SECTIONS = ("virtual", "dpsv")
+OWN_SECTIONS = ("virtual", "dpsv", "ssss", "truth", "scaling")
 
 
 def _part(f: Path) -> str:

@@ -23,7 +23,9 @@ Measured (never asserted in tests):
   and the grid of equal final loss;
 * virtual shadow maps (``shadowlab.bench.virtual``, [Giegl 2007]): ``virtual.json`` / ``virtual.md``;
 * shadow maps fused with deep partitioned shadow volumes (``shadowlab.bench.dpsv``, [Wang 2022]):
-  ``dpsv.json`` / ``dpsv.md``.
+  ``dpsv.json`` / ``dpsv.md``;
+* layered screen-space soft shadows (``shadowlab.bench.ssss``, [Tamás 2015]): ``ssss.json`` /
+  ``ssss.md``.
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ from .scaling import run as scaling_bench
 from .fit import markdown as fit_markdown
 from .fit import measure as bench_fit
 from .sdf import run as sdf_bench
+from .ssss import run as ssss_bench
 from .timing import machine_text, timed
 from .virtual import run as virtual_bench
 
@@ -131,6 +134,18 @@ def bench_truth(scene="contact", res=512, target_se=0.005, uniform_res=128, unif
         raws.append(raw_ray_test(frame, light, repeats=1, warmup=0))
     t = float(np.median(ts))
     raw = min(raws, key=lambda r: abs(r["time_s"] - float(np.median([x["time_s"] for x in raws]))))
+    # one more run with Dr.Jit's kernel history: how much of the wall time the kernels take (the
+    # rest is the host's: tracing, the stopping rule, transfers)
+    prev = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history_clear()
+    try:
+        _, (tk,) = timed(lambda: visibility(frame, light, target_se=target_se))
+        kern = _kernels()
+    finally:
+        dr.kernel_history_clear()
+        dr.set_flag(dr.JitFlag.KernelHistory, prev)
+    kern.update(wall_s=tk, kernel_share=kern["execution_ms"] / 1e3 / tk)
     m = frame.gbuffer.to_image(frame.gbuffer.mask.reshape(-1).astype(np.float32)) > 0.5
     adaptive = {"resolution": [W, H], "time_s": t, "shadow_rays": lt.rays,
                 "rays_per_s": lt.rays / t, "rays_per_pixel": lt.rays / float(m.sum()),
@@ -166,7 +181,7 @@ def bench_truth(scene="contact", res=512, target_se=0.005, uniform_res=128, unif
                "shadow_rays_needed_at_res": uniform_rays, "time_s": tu}
     return {"scene": scene, "adaptive": adaptive, "uniform": uniform,
             "ray_ratio_uniform_over_adaptive": uniform_rays / lt.rays,
-            "raw_ray_test": raw, "truth_over_raw": adaptive["rays_per_s"] / raw["rays_per_s"],
+            "raw_ray_test": raw, "truth_over_raw": adaptive["rays_per_s"] / raw["rays_per_s"], "truth_kernels": kern,
             "mitsuba_image": image}
 
 
@@ -282,6 +297,10 @@ def _raw_rows(tr: dict, gpu: bool) -> list:
             f"{r['rays_per_s'] / 1e6:.1f} M/s | |",
             f"| truth / raw `ray_test` rays per second | **{100 * tr['truth_over_raw']:.0f} %** | "
             f"≥ {50 if gpu else 80} % |",
+            *([] if "truth_kernels" not in tr else [
+                f"| the truth's kernels (one more run, kernel history) | {tr['truth_kernels']['kernels']} launched, "
+                f"{tr['truth_kernels']['execution_ms']:.0f} ms of {1e3 * tr['truth_kernels']['wall_s']:.0f} ms wall "
+                f"({100 * tr['truth_kernels']['kernel_share']:.0f} %; the rest is the host's) | |"]),
             f"| Mitsuba image of the truth ({im['spp']} spp in 4 passes, with variance) | {im['truth_image_s']:.3f} s | |",
             f"| Mitsuba `direct` integrator alone ({im['spp']} spp, one render) | {im['direct_s']:.3f} s | |",
             f"| truth image / `direct` time | **{im['ratio']:.2f}×** | ≤ 2× |"]
@@ -357,11 +376,14 @@ def _markdown(res: dict) -> str:
     if res.get("dpsv"):
         lines += ["", f"Shadow maps fused with deep partitioned shadow volumes ([Wang 2022]): see "
                       f"`{Path(res['dpsv']).name}` (`shadowlab bench --only dpsv`)."]
+    if res.get("ssss"):
+        lines += ["", f"Layered screen-space soft shadows ([Tamás 2015]): see `{Path(res['ssss']).name}` "
+                      "(`shadowlab bench --only ssss`)."]
     return "\n".join(lines) + "\n"
 
 
 #: the parts ``--only`` runs alone
-ONLY = ("sdf", "cascades", "virtual", "dpsv", "scaling", "truth")
+ONLY = ("sdf", "cascades", "virtual", "dpsv", "ssss", "scaling", "truth")
 
 
 def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
@@ -370,7 +392,8 @@ def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
     ``only="sdf"``: just the SDF soft-shadow bench (:mod:`shadowlab.bench.sdf`: ``out/sdf.json``,
     ``out/sdf.md``); ``only="virtual"``: just :mod:`shadowlab.bench.virtual` (``out/virtual.json``,
     ``out/virtual.md``, ``out/virtual.png``); ``only="dpsv"``: just :mod:`shadowlab.bench.dpsv`
-    (``out/dpsv.json``, ``out/dpsv.md``); ``only="truth"``: just the ground-truth part
+    (``out/dpsv.json``, ``out/dpsv.md``); ``only="ssss"``: just :mod:`shadowlab.bench.ssss`
+    (``out/ssss.json``, ``out/ssss.md``); ``only="truth"``: just the ground-truth part
     (``out/truth.json``, ``out/truth.md``); the full run writes them all."""
     if only is not None and only not in ONLY:
         raise InputError(f"--only {only!r}: expected one of {', '.join(ONLY)} (or no --only for every benchmark)")
@@ -382,6 +405,8 @@ def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
         return virtual_bench(Path(out), quick=quick)
     if only == "dpsv":
         return dpsv_bench(Path(out), quick=quick)
+    if only == "ssss":
+        return ssss_bench(Path(out), quick=quick)
     if only == "scaling":
         return scaling_bench(Path(out), quick=quick)
     backend.init()
@@ -403,6 +428,7 @@ def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
     res["cascades"] = str(cascades_bench(Path(out), quick=quick))  # [Buljan 2020, ch. 4]: cascades.json / .md
     res["virtual"] = str(virtual_bench(Path(out), quick=quick))  # [Giegl 2007]: virtual.json / .md / .png
     res["dpsv"] = str(dpsv_bench(Path(out), quick=quick))  # [Wang 2022]: dpsv.json / dpsv.md
+    res["ssss"] = str(ssss_bench(Path(out), quick=quick))  # [Tamás 2015]: ssss.json / ssss.md
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "bench.json", res)

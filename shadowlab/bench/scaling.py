@@ -114,7 +114,7 @@ def run(out: Path, quick: bool = False) -> Path:
     counts = worker_counts(len(visible_gpus()) if cuda else os.cpu_count() or 1)
     tmp = Path(tempfile.mkdtemp(prefix="shadowlab-scaling-"))
     res = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": backend.machine_info(),
-           "quick": quick, "config": {**cfg, "scenes": scenes}, "sweep": SWEEP, "runs": []}
+           "quick": quick, "config": dict(cfg), "scenes": scenes, "sweep": SWEEP, "runs": []}
     out = Path(out)
     stem = "scaling-cuda" if cuda else "scaling"
     try:
@@ -171,8 +171,8 @@ def _markdown(res: dict) -> str:
     lines = [f"# Scaling on Dask ({res['date']})", "",
              f"Machine: {machine_text(m)}. All figures from one run"
              + (" (--quick: a smoke run, not for figures)." if res["quick"] else "."), "",
-             f"- references: {res['references']} (every built-in scene"
-             + ("" if c["scenes"] is None else " of " + ", ".join(c["scenes"]))
+             f"- references: {res['references']} ("
+             + ("every built-in scene" if c["scenes"] is None else ", ".join(c["scenes"]))
              + f" and every frame of the camera paths) at {W}×{H}, target standard error {c['target_se']}, "
              f"{c['spp']} spp Mitsuba image;",
              f"- sweep: `{t}.{name}` = {lo}…{hi}, {c['sweep_points']} points on {len(res['sweep_scenes'])} scenes "
