@@ -15,24 +15,12 @@ import pytest
 
 from shadowlab.techniques.base import get
 
+from mesh_scene import ball_frame
+
 
 @pytest.fixture(scope="module")
 def ball(tmp_path_factory, mitsuba_backend):
-    from shadowlab.exchange.ply import write_ply
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import build, parse
-    from shadowlab.scene.mesh import _sphere
-    d = tmp_path_factory.mktemp("acne")
-    P, _, _, F = _sphere(32)
-    write_ply(d / "ball.ply", (P * 0.6).astype(np.float32), np.zeros_like(P, np.float32),
-              np.zeros((len(P), 2), np.float32), F.astype(np.int32))
-    spec = {"name": "acne", "camera": {"position": [0, 3.5, 3.5], "target": [0, 0.5, 0], "fov": 40,
-                                       "resolution": [128, 128]},
-            "lights": [{"name": "L", "kind": "spot", "position": [1.5, 3.0, 1.0], "target": [0, 0.5, 0],
-                        "angle": 35.0, "power": 100.0, "shadow_map": 1024}],
-            "shapes": [{"name": "floor", "type": "rectangle", "rotate": [1, 0, 0, -90], "scale": 3.0},
-                       {"name": "ball", "type": "ply", "filename": "ball.ply", "translate": [0, 0.8, 0]}]}
-    return make_frame(build(parse(spec, str(d / "acne.toml"))), u_strata=1)
+    return ball_frame(tmp_path_factory.mktemp("acne"), 32)
 
 
 def _rates(frame, **params):
