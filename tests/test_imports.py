@@ -156,10 +156,10 @@ def test_sdf_is_a_geometry_library():
 def test_the_sdf_seed_hash_is_shadowlabs():
     """``shadowlab.sdf.soft.fnv32`` is the seed hash of render.shading (written twice because
     sdf imports nothing of shadowlab): same bits, so Monte-Carlo streams keep their seeds."""
-    from shadowlab.render.shading import _hash32
+    from shadowlab.render.shading import seed_hash
     from shadowlab.sdf.soft import fnv32
     for vals in [(0x5DF, 0), (0x5DF, 7), (0xC5, 123456789), (1, 2, 3), ()]:
-        assert fnv32(*vals) == _hash32(*vals)
+        assert fnv32(*vals) == seed_hash(*vals)
 
 
 # --- the checks themselves catch what they are for ------------------------------------------------

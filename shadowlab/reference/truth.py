@@ -50,7 +50,7 @@ from ..render.frame import FrameContext
 from ..render.gbuffer import vec_numpy
 from ..render.lightview import cast_first_hit
 from ..render import shading
-from ..render.shading import _hash32, _loop
+from ..render.shading import light_samples, seed_hash
 from ..scene.lights import forward as lights_fwd
 
 #: the largest seed a truth render takes: Mitsuba's ``mi.render`` gets seed·1000 + i (i < 1000), a 32-bit
@@ -95,7 +95,7 @@ def _round_values(mi_scene, si, emitter, rng, k, kk, alpha, win):
     """One round of ``sample_light``'s k×k samples with shadow rays at ``si`` from ``rng``: the
     round's ratio Vr = Σ f·v / Σ f and visible fraction Ar (float64, as the numpy version
     computed them) and its number of visible samples."""
-    _, fv, fsum, v = _loop(mi_scene, si, emitter, rng, k, True, True, alpha, win, radiance=False)
+    _, fv, fsum, v = light_samples(mi_scene, si, emitter, rng, k, True, True, alpha, win, radiance=False)
     fv, fsum, v = mi.Float64(fv), mi.Float64(fsum), mi.Float64(v)
     return dr.select(fsum > 0, fv / dr.select(fsum > 0, fsum, 1.0), 1.0), v / mi.Float64(kk), v
 
@@ -103,7 +103,7 @@ def _round_values(mi_scene, si, emitter, rng, k, kk, alpha, win):
 def _round_hashes(seed: int, max_rounds: int):
     """The PCG32 state of each round, as ``sample_light`` seeds it: one UInt64 array in memory
     that the kernels gather from, so the seed never enters a kernel as a literal."""
-    return mi.UInt64(np.array([_hash32(seed, r) for r in range(max(max_rounds, 1))], np.uint64))
+    return mi.UInt64(np.array([seed_hash(seed, r) for r in range(max(max_rounds, 1))], np.uint64))
 
 
 def _round(mi_scene, si, emitter, idx, hashes, r, k, kk, alpha, win, sums):

@@ -34,7 +34,7 @@ import numpy as np
 from ..sdf.trace import cone_trace, sphere_trace
 from .camera import Camera
 from .gbuffer import GBuffer, vec_numpy
-from .shading import _hash32
+from .shading import seed_hash
 
 
 @dataclass
@@ -120,7 +120,7 @@ def unshadowed(scene, gb: SDFGBuffer, light_name: str, k: int = 16, seed: int = 
     k = 1 if spec.is_delta else int(k)
     n = gb.size
     idx = dr.arange(mi.UInt32, n)
-    rng = mi.PCG32(n, dr.opaque(mi.UInt64, _hash32(seed, 0xFFFF)), mi.UInt64(idx))
+    rng = mi.PCG32(n, dr.opaque(mi.UInt64, seed_hash(seed, 0xFFFF)), mi.UInt64(idx))
     alb = mi.Color3f(*(mi.Float(np.ascontiguousarray(gb.albedo.reshape(-1, 3)[:, c])) for c in range(3)))
     U = _unshadowed_loop(scene.emitters[light_name], gb.si, gb.valid, alb, rng, mi.UInt32(k))
     U = dr.select(gb.valid, U / float(k * k), 0.0)

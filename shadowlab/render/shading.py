@@ -19,7 +19,7 @@ its falloff windowed by
 
 the windowing common in engines [Karis 2013] (Unreal Engine 4; Frostbite uses the same
 window [Lagarde 2014]): 1 at the light, 0 from d = R on, smooth at both ends. It is applied
-in one place, :func:`_loop`, to every sample's contribution (``window`` = :func:`range_window`,
+in one place, :func:`light_samples`, to every sample's contribution (``window`` = :func:`range_window`,
 computed by :func:`sample_light` from the light's spec): ``U_L`` (:func:`unshadowed`) and every
 caller of :func:`sample_light` get it. d is measured from the light's centre, not from the
 sample on an area light, so w is one number per shading point: the truth's visibility ratio
@@ -42,7 +42,13 @@ from ..scene.build import transparent
 from .gbuffer import vec_numpy
 
 
-def _hash32(*vals) -> int:
+def seed_hash(*vals) -> int:
+    """FNV-1a (32 bit) of the values' 8-byte little-endian bytes: the seed of every PCG32 stream
+    (seed, round, ...) in shadowlab.
+
+    >>> seed_hash(0) == seed_hash(0), seed_hash(0, 1) != seed_hash(1, 0)
+    (True, True)
+    """
     h = 2166136261
     for v in vals:
         for b in int(v).to_bytes(8, "little", signed=False):
@@ -91,11 +97,11 @@ def sample_light(scene, si, emitter, k: int, seed: int, rnd: int, shadow: bool, 
     n = dr.width(si.p)
     idx = dr.arange(mi.UInt32, n)
     # opaque: a literal seed would be baked into the kernel and compile a new one every round
-    rng = mi.PCG32(n, dr.opaque(mi.UInt64, _hash32(seed, rnd)), mi.UInt64(idx))
+    rng = mi.PCG32(n, dr.opaque(mi.UInt64, seed_hash(seed, rnd)), mi.UInt64(idx))
     alpha = bool(shadow and getattr(scene, "has_alpha", False))
     light = _light_of(scene, emitter)
     win = range_window(light, si.p) if light is not None else None
-    return _loop(scene.mi_scene, si, emitter, rng, mi.UInt32(k), shadow, stratified, alpha, win)
+    return light_samples(scene.mi_scene, si, emitter, rng, mi.UInt32(k), shadow, stratified, alpha, win)
 
 
 MAX_ALPHA_LAYERS = 64  # transparent texels a shadow ray may pass; a ray still on one after that is blocked
@@ -126,7 +132,7 @@ def occluded_alpha(mi_scene, ray, active):
 
 
 @dr.syntax
-def _loop(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False, win=None, radiance=True):
+def light_samples(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False, win=None, radiance=True):
     """k² samples of ``emitter`` at ``si`` (see :func:`sample_light`); ``win``: per-point range
     window (:func:`range_window`) multiplying every sample's contribution, None = none;
     ``radiance=False``: ``f`` is not summed (returned as zero; the truth needs only fv, fsum, v).

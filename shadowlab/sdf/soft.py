@@ -515,7 +515,7 @@ def _halton_arrays(n: int):
 
 def fnv32(*vals) -> int:
     """FNV-1a over the 8 little-endian bytes of each value: the seed hash of every Monte-Carlo
-    stream in shadowlab (the same function as ``shadowlab.render.shading._hash32``, written here
+    stream in shadowlab (the same function as ``shadowlab.render.shading.seed_hash``, written here
     because this package imports nothing of shadowlab; a test checks they agree)."""
     h = 2166136261
     for v in vals:

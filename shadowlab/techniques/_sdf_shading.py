@@ -33,7 +33,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..render.shading import _hash32
+from ..render.shading import seed_hash as fnv_seed
 from ..scene.lights import light_sphere
 from ..sdf import soft
 
@@ -126,7 +126,7 @@ def visibility(frame, light, sdf, o, R0, *, estimator: str = "edge", samples: in
     n = dr.width(o)
     idx = dr.arange(mi.UInt32, n)
     k = dr.opaque(mi.UInt32, int(samples))
-    sh = dr.opaque(mi.UInt32, _hash32(0xC5, seed))
+    sh = dr.opaque(mi.UInt32, fnv_seed(0xC5, seed))
     aovs = {}
     if estimator == "traced":
         v, its = _traced_loop(sdf, emitter, gb.si, o, nrm, valid, idx, k, sh, dr.opaque(mi.Float, hit_eps),
