@@ -176,6 +176,9 @@ def _scene_list(scenes_, all_: bool) -> list[str]:
 def _reference_done(path, meta):
     typer.echo(f"reference written to {path}: worst standard error {meta['max_std_error']:.4f}, "
                f"{meta['samples']['shadow_rays']:,} shadow rays, {meta['wall_time_s']:.1f} s")
+    per = (meta.get("stats") or {}).get("per_light") or {}
+    if len(per) > 1:
+        typer.echo("  per light: " + ", ".join(f"{n} {c['time_s']:.2f} s ({c['shadow_rays']:,} rays)" for n, c in per.items()))
     tm = meta.get("target_missed") or {}
     if tm.get("pixels"):
         per = ", ".join(f"{n} {v['pixels']}" for n, v in tm["lights"].items())

@@ -154,3 +154,18 @@ def test_shaded_truth_agrees_with_mitsuba_direct_integrator():
     assert rel < 0.01
     z = (truth.shaded - truth.mitsuba) / np.sqrt(truth.shaded_var + truth.mitsuba_var + 1e-12)
     assert np.median(np.abs(z[m])) < 1.0  # |z| of N(0,1) has median 0.67
+
+
+def test_the_truths_cost_is_recorded_per_light(mitsuba_backend):
+    """stats["per_light"]: each light's seconds and shadow rays; the rays add up to the total and
+    equal the sum of that light's per-pixel ray counts (the stored N channel)."""
+    from shadowlab.render.frame import make_frame
+    from shadowlab.reference.truth import render_truth
+    sc = load("two_lights", resolution=(32, 32))
+    t = render_truth(make_frame(sc), spp=0, max_rounds=8)
+    per = t.stats["per_light"]
+    assert set(per) == {l.name for l in sc.lights}
+    assert sum(c["shadow_rays"] for c in per.values()) == t.stats["shadow_rays"]
+    for n, c in per.items():
+        assert c["time_s"] > 0
+        assert c["shadow_rays"] == int(t.lights[n].samples.sum()) > 0   # the per-pixel counts (channel N)

@@ -343,14 +343,20 @@ def mitsuba_render(scene, spp: int = 256, passes: int = 4, seed: int = 0):
 
 def render_truth(frame: FrameContext, *, k: int = 8, target_se: float = 0.005, max_rounds: int = 64,
                  seed: int = 0, spp: int = 256, progress=None) -> Truth:
-    """The whole ground truth of a frame: every light's visibility, Σ U·V and mi.render."""
+    """The whole ground truth of a frame: every light's visibility, Σ U·V and mi.render. ``stats``
+    holds the cost, in all and per light (``per_light``: seconds and shadow rays of each light's
+    visibility), which ``meta.json`` records: a many-light truth's cost grows with its lights."""
     gb = frame.gbuffer
     t0 = time.perf_counter()
-    lights, U = {}, {}
+    lights, U, cost = {}, {}, {}
     shaded = 0.0
     var = 0.0
     for l in frame.lights:
+        dr.sync_thread()
+        t_l = time.perf_counter()
         lt = visibility(frame, l.name, k=k, target_se=target_se, max_rounds=max_rounds, seed=seed, progress=progress)
+        dr.sync_thread()
+        cost[l.name] = {"time_s": time.perf_counter() - t_l, "shadow_rays": int(lt.rays)}
         lights[l.name] = lt
         U[l.name] = gb.to_image(vec_numpy(frame.unshadowed[l.name]))
         shaded = shaded + U[l.name] * lt.V[..., None]
@@ -363,7 +369,8 @@ def render_truth(frame: FrameContext, *, k: int = 8, target_se: float = 0.005, m
     stats = {"visibility_time_s": t_vis, "mitsuba_time_s": time.perf_counter() - t0 - t_vis,
              "shadow_rays": int(sum(l.rays for l in lights.values())),
              "max_std_error": float(max(float(l.V_se[mask].max()) if mask.any() else 0.0 for l in lights.values())),
-             "spp_mitsuba": spp, "strata": k, "target_se": target_se, "max_rounds": max_rounds, "seed": seed}
+             "spp_mitsuba": spp, "strata": k, "target_se": target_se, "max_rounds": max_rounds, "seed": seed,
+             "per_light": cost}
     return Truth(lights=lights, U=U, shaded=np.asarray(shaded, np.float32), shaded_var=np.asarray(var, np.float32),
                  mitsuba=mean, mitsuba_var=mvar, mask=mask, view_depth=gb.to_image(gb.view_depth.reshape(-1)),
                  stats=stats)
