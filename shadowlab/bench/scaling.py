@@ -34,7 +34,6 @@ from ..io.exr import read_exr
 from ..io.jsonio import write_json_atomic
 from ..io.png import write_bytes_atomic
 from ..pipeline import reference_batch
-from ..reference import store
 from ..scene.spec import builtin_names, load_spec, resolve
 from ..sweep import results_only, sweep
 from ..techniques import base as tbase

@@ -12,10 +12,7 @@ from __future__ import annotations
 import html as _html
 import json
 import math
-import os
 import re
-import shutil
-import tempfile
 import textwrap
 from pathlib import Path
 from urllib.parse import quote
@@ -26,7 +23,7 @@ from ..errors import InputError
 from ..io.png import encode_png
 from ..report import images as _im
 from ..report.html import to_jsonable
-from ..report.outdir import MARKER, claim_dir, marker_text
+from ..report.outdir import claim_dir, write_dir
 from . import preset as P
 
 OUTPUT_FILES = ("fit.json", "summary.md", "preset.toml", "index.html")
@@ -352,36 +349,14 @@ def write(out: Path, run: dict, force: bool = False, protected=()) -> Path:
     out = Path(out)
     check_out(out, force, protected)
     data = to_json(run)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.fit-"))
-    try:
-        (tmp / "img").mkdir()
+    def fill(tmp: Path) -> None:
         text = _page(run, tmp / "img", out)
         (tmp / "fit.json").write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
         (tmp / "summary.md").write_text(summary_table(run), encoding="utf-8")
         (tmp / "preset.toml").write_text(P.to_toml(run["preset"]["name"], run["preset"]["values"],
                                                    P.FIT_DESCRIPTION, P.preset_meta(run)), encoding="utf-8")
         (tmp / "index.html").write_text(text, encoding="utf-8")
-        (tmp / MARKER).write_text(marker_text("fit", OUTPUT_FILES + ("img",)), encoding="utf-8")
-        os.chmod(tmp, 0o755)
-        _install(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out / "index.html"
+
+    return write_dir(out, "fit", fill, OUTPUT_FILES, ("img",))
 
 
-def _install(tmp: Path, out: Path):
-    if not out.exists():
-        try:
-            os.rename(tmp, out)
-            return
-        except OSError:
-            pass
-    old = tmp / ".old-img"
-    if os.path.lexists(out / "img"):
-        os.rename(out / "img", old)
-    os.rename(tmp / "img", out / "img")
-    for f in (MARKER,) + OUTPUT_FILES:           # index.html last: it links the rest
-        os.replace(tmp / f, out / f)
-    shutil.rmtree(tmp, ignore_errors=True)

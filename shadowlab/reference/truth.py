@@ -85,12 +85,6 @@ class Truth:
     stats: dict = field(default_factory=dict)
 
 
-def _window(light, si):
-    """The light's range window at ``si`` (:func:`~shadowlab.render.shading.range_window`; None
-    without a range), computed outside the symbolic loops, which cannot carry a spec."""
-    return shading.range_window(light, si.p)
-
-
 def _round_values(mi_scene, si, emitter, rng, k, kk, alpha, win):
     """One round of ``sample_light``'s k×k samples with shadow rays at ``si`` from ``rng``: the
     round's ratio Vr = Σ f·v / Σ f and visible fraction Ar (float64, as the numpy version
@@ -207,7 +201,8 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
         # wavefront 1: every valid point's first rounds (stream key: rank among the valid points)
         si = dr.gather(type(gb.si), gb.si, active)
         sums = _fixed_rounds(scene.mi_scene, si, emitter, dr.arange(mi.UInt32, n_act), hashes,
-                             dr.opaque(mi.UInt32, n_first), opq["k"], opq["kk"], alpha, _window(spec, si))
+                             dr.opaque(mi.UInt32, n_first), opq["k"], opq["kk"], alpha,
+                             shading.range_window(spec, si.p))
         rounds = dr.full(mi.Float64, n_first, n_act)
         dr.eval(sums, rounds)
         rays += n_act * n_first * kk
@@ -241,7 +236,7 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
                 si_q = dr.gather(type(gb.si), gb.si, dr.gather(mi.UInt32, pts, q))
                 Sq = _more_rounds(scene.mi_scene, si_q, emitter, q, mi.UInt32(R[rows].astype(np.uint32)),
                                   mi.UInt32(T[order].astype(np.uint32)), hashes, opq["k"], opq["kk"], alpha,
-                                  _window(spec, si_q), tuple(dr.gather(mi.Float64, x, q) for x in S))
+                                  shading.range_window(spec, si_q.p), tuple(dr.gather(mi.Float64, x, q) for x in S))
                 dr.eval(Sq)  # before the scatters: scattered into while its kernel still reads S, Sq came out wrong
                 for x, y in zip(S, Sq):
                     dr.scatter(x, y, q)

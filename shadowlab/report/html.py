@@ -35,8 +35,6 @@ import math
 import numbers
 import os
 import re
-import shutil
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from urllib.parse import quote
@@ -48,7 +46,7 @@ from shadowlab.report import charts as _charts
 from shadowlab.report import comparator as _cmp
 from shadowlab.report import images as _im
 from shadowlab.report.lights import light_rows
-from shadowlab.report.outdir import MARKER, claim_dir, marker_text
+from shadowlab.report.outdir import claim_dir, write_dir
 
 __all__ = ["build", "summary_table", "stats_tables", "validate", "run_to_json", "to_jsonable", "higher_is_better"]
 
@@ -877,28 +875,6 @@ def _metric_line_any(d: Mapping) -> str:
 # build
 
 
-def _install(tmp: Path, out: Path) -> None:
-    """Move the built files from ``tmp`` into ``out``; only our files are replaced."""
-    if not out.exists():
-        try:
-            os.rename(tmp, out)  # atomic; fails if out_dir appeared meanwhile and is non-empty
-            return
-        except OSError:
-            pass
-    old_img = tmp / ".old-img"
-    if os.path.lexists(out / "img"):
-        os.rename(out / "img", old_img)
-    try:
-        os.rename(tmp / "img", out / "img")
-    except BaseException:
-        if os.path.lexists(old_img):
-            os.rename(old_img, out / "img")
-        raise
-    for f in (MARKER, "metrics.json", "summary.md", "index.html"):  # index.html last: it links the rest
-        os.replace(tmp / f, out / f)
-    shutil.rmtree(tmp, ignore_errors=True)
-
-
 def build(out_dir, run: Mapping, *, force: bool = False, protected=(), kind: str = "compare") -> Path:
     """Write ``out_dir/index.html``, ``summary.md``, ``metrics.json`` and ``img/*.png`` for one run;
     returns the path of index.html.
@@ -940,18 +916,10 @@ def build(out_dir, run: Mapping, *, force: bool = False, protected=(), kind: str
     if b_md:
         md_text += "\n## Visibility error by distance and cascade\n\n" + b_md
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.building-"))
-    try:
-        (tmp / "img").mkdir()
+    def fill(tmp: Path) -> None:
         html_text = _render(run, imgs, tmp / "img")
         (tmp / "metrics.json").write_text(json_text, encoding="utf-8")
         (tmp / "summary.md").write_text(md_text, encoding="utf-8")
         (tmp / "index.html").write_text(html_text, encoding="utf-8")
-        (tmp / MARKER).write_text(marker_text(kind, OUTPUT_FILES + OUTPUT_DIRS), encoding="utf-8")
-        os.chmod(tmp, 0o755)  # mkdtemp makes it 0700; the report directory should be readable
-        _install(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out / "index.html"
+
+    return write_dir(out, kind, fill, OUTPUT_FILES, OUTPUT_DIRS)

@@ -30,11 +30,14 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
+import tempfile
 from pathlib import Path
+from typing import Callable
 
 from ..errors import InputError
 
-__all__ = ["MARKER", "claim_dir", "check_out_file", "is_ours", "marker_text", "inside"]
+__all__ = ["MARKER", "claim_dir", "check_out_file", "is_ours", "marker_text", "inside", "write_dir"]
 
 #: the file that marks a directory as a shadowlab report directory
 MARKER = ".shadowlab-report"
@@ -107,3 +110,48 @@ def check_out_file(path, option: str, *, force: bool = False, protected=(), ours
         raise InputError(f"{option} {p} already exists and was not written by shadowlab; choose another file "
                          "name, or pass --force to replace it")
     return p
+
+
+def write_dir(out, kind: str, fill: Callable[[Path], None], files, dirs=()) -> Path:
+    """Build a report in a temporary sibling of ``out`` (``fill(tmp)`` writes ``files`` and
+    ``dirs`` there), mark it, and install it: one rename when ``out`` does not exist, else only the
+    report's own directories and then files are replaced, ``index.html`` last (it links the rest),
+    so other files in ``out`` stay and a reader never sees a page without its parts. A failure
+    leaves ``out`` as it was. Returns ``out / "index.html"``.
+
+    >>> import tempfile, pathlib
+    >>> d = pathlib.Path(tempfile.mkdtemp()) / "r"
+    >>> write_dir(d, "demo", lambda t: (t / "index.html").write_text("hi"), ("index.html",)).read_text()
+    'hi'
+    """
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.{kind}-"))
+    try:
+        for d in dirs:
+            (tmp / d).mkdir()
+        fill(tmp)
+        (tmp / MARKER).write_text(marker_text(kind, tuple(files) + tuple(dirs)), encoding="utf-8")
+        os.chmod(tmp, 0o755)  # mkdtemp makes it 0700; a report directory should be readable
+        if not out.exists():
+            try:
+                os.rename(tmp, out)  # atomic; fails if out appeared meanwhile and is non-empty
+                return out / "index.html"
+            except OSError:
+                pass
+        out.mkdir(parents=True, exist_ok=True)
+        for d in dirs:
+            old = tmp / f".old-{d}"
+            if os.path.lexists(out / d):
+                os.rename(out / d, old)
+            try:
+                os.rename(tmp / d, out / d)
+            except BaseException:
+                if os.path.lexists(old):
+                    os.rename(old, out / d)
+                raise
+        for f in sorted((MARKER, *files), key=lambda f: f == "index.html"):
+            os.replace(tmp / f, out / f)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out / "index.html"

@@ -14,15 +14,12 @@ from __future__ import annotations
 import html as _html
 import json
 import math
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 from ..errors import InputError
 from ..report.charts import colour, nice_ticks
-from ..report.html import higher_is_better, to_jsonable
-from ..report.outdir import MARKER, claim_dir, marker_text
+from ..report.html import to_jsonable
+from ..report.outdir import claim_dir, write_dir
 
 __all__ = ["OUTPUT_FILES", "summary_markdown", "sweep_chart", "page", "write_report"]
 
@@ -215,23 +212,9 @@ def write_report(out: Path, rec: dict, *, force: bool = False, protected=()) -> 
             raise InputError(f"--out: {out / f} is a directory; remove it or choose another --out")
     data = json.dumps(to_jsonable({k: v for k, v in rec.items() if k != "report"}, "sweep"), indent=2,
                       allow_nan=False) + "\n"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.sweep-"))
-    try:
+    def fill(tmp: Path) -> None:
         (tmp / "sweep.json").write_text(data, encoding="utf-8")
         (tmp / "summary.md").write_text(summary_markdown(rec), encoding="utf-8")
         (tmp / "index.html").write_text(page(rec), encoding="utf-8")
-        (tmp / MARKER).write_text(marker_text("sweep", OUTPUT_FILES), encoding="utf-8")
-        os.chmod(tmp, 0o755)
-        if not out.exists():
-            try:
-                os.rename(tmp, out)
-                return out / "index.html"
-            except OSError:
-                pass
-        out.mkdir(parents=True, exist_ok=True)
-        for f in (MARKER,) + OUTPUT_FILES:           # index.html last: it links the rest
-            os.replace(tmp / f, out / f)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return out / "index.html"
+
+    return write_dir(out, "sweep", fill, OUTPUT_FILES)

@@ -14,6 +14,7 @@ metrics are the same bits whatever the number of workers; run times are kept apa
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from pathlib import Path
 
 from ..cluster import Executor, open_executor
@@ -111,11 +112,7 @@ def sweep(scenes, technique: str, param: str, *, sets=None, resolution=None, fra
         claim_dir(Path(out), "sweep", force=force, protected=[root], files=OUTPUT_FILES)
     rng, fixed, infos, jobs = sweep_jobs(scenes, technique, param, sets, resolution, frame, root)
     desc = f"sweep {technique}.{rng.param.name}"
-    if executor is None:
-        with open_executor(workers, scheduler) as ex:
-            results = ex.map(evaluate_point, jobs, desc=desc, progress=progress)
-    else:
-        ex = executor
+    with nullcontext(executor) if executor is not None else open_executor(workers, scheduler) as ex:
         results = ex.map(evaluate_point, jobs, desc=desc, progress=progress)
     n = len(rng.values)
     record = {"technique": technique, "param": rng.describe(),
