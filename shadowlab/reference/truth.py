@@ -20,16 +20,27 @@ with f = bsdf · Le · cos / pdf from Mitsuba's emitter sampling and v from Mits
 
 Wavefronts. Each point's stopping rule reads only its own samples, and between the pilot's end
 and its plan's end it decides nothing, so the sampler runs as few, large kernels instead of one
-small kernel per round: every valid point's first ``min_rounds`` rounds in one (a loop over the
-rounds), then one per decision (the pilot's end, each plan's end) with a lane per point that
-loops over its rounds up to it, summing them in round order; the lanes are ordered by their
-number of rounds, so that neighbouring lanes finish together. The per-point state (interaction,
-float64 sums) stays on the device: the valid and the penumbra points are found with
-``dr.compress``, a wavefront gathers its lanes' interactions from the G-buffer inside its kernel,
-and the host reads back only the three sums the rule needs of the points still sampling.
-Random numbers: PCG32 seeded by (seed, round) on the point's own stream, its rank among the
-valid points for the first rounds and among the points that sample on after them for all later
-ones; a fixed seed gives the same bits.
+small kernel per round: every valid point's first ``min_rounds`` rounds in one (a lane per point
+looping over the rounds), then one per decision (the pilot's end, each plan's end), each point's
+rounds summed in round order in float64. Their lanes differ by device:
+
+* on a GPU, a lane per (point, round): a point's rounds in adjacent lanes, each writing its
+  round's values to a float64 buffer, and a second, cheap kernel per point that adds them to the
+  point's sums in round order (the same additions as a loop). Every plan made at the pilot's end
+  covers at least 2·MIN_SE_ROUNDS rounds, so the pilot's wavefront samples those too and keeps
+  the sums at the pilot's end for its decision;
+* on the CPU, a lane per point looping over its rounds, the lanes ordered by their number of
+  rounds (neighbouring lanes finish together). Embree traces packets of neighbouring lanes and a
+  ray's result can depend on its packet, so the CPU keeps this layout, that of the committed bits
+  (a GPU traces each lane alone: its layout changes no bit).
+
+The per-point state (interaction, float64 sums) stays on the device: the valid and the penumbra
+points are found with ``dr.compress``, a wavefront gathers its lanes' interactions from the
+G-buffer inside its kernel, and the host reads back, in one transfer per decision, only the three
+sums the rule needs of the points deciding. Random numbers: PCG32 seeded by (seed, round) on the
+point's own stream, its rank among the valid points for the first rounds and among the points
+that sample on after them for all later ones, whatever lane runs the round; a fixed seed gives
+the same bits.
 
 The rounds are independent, so the standard error is an honest estimate. The shaded truth is
 Σ_L U_L · V_L at the same pixel centres as the techniques (so metrics isolate shadows), and
@@ -142,10 +153,109 @@ def _lane_round(mi_scene, si, emitter, key, lane, r, hashes, k, kk, alpha, win, 
     return _fold(sums, *_round_values(mi_scene, si, emitter, rng, k, kk, alpha, win))
 
 
+def _lane_rounds(mi_scene, si, emitter, key, r, hashes, k, kk, alpha, win):
+    """One round per lane: lane i is round ``r[i]`` of the point of rank ``key[i]`` (Vr, Ar and
+    visible samples, float64, as ``_round_values``).
+
+    PCG32 adds the lane's index to the state and to the sequence it is given; the lane is given
+    what makes them its point's own in a wavefront of one lane per point (``_round``): a point of
+    rank ``key`` starts round r at the round's hash + key on sequence 2·key, wherever its lane lies."""
+    lane, key64 = dr.arange(mi.UInt64, dr.width(key)), mi.UInt64(key)
+    rng = mi.PCG32(dr.width(key), dr.gather(mi.UInt64, hashes, r) + key64 - lane, key64 + key64 - lane)
+    return _round_values(mi_scene, si, emitter, rng, k, kk, alpha, win)
+
+
+@dr.syntax
+def _fold_rounds(vals, start, n_dec, n_all, sums):
+    """Each point's rounds, lanes ``start`` … ``start + n_all − 1`` of ``vals`` (Vr, Ar, v), added
+    to its float64 ``sums`` in round order; returns the sums after its first ``n_dec`` of them (the
+    decision's) and after all of them."""
+    Vb, Ab, vb = vals
+    j = dr.zeros(mi.UInt32, dr.width(start))
+    while j < n_dec:
+        i = start + j
+        sums = _fold(sums, dr.gather(mi.Float64, Vb, i), dr.gather(mi.Float64, Ab, i), dr.gather(mi.Float64, vb, i))
+        j += 1
+    dec = sums
+    while j < n_all:
+        i = start + j
+        sums = _fold(sums, dr.gather(mi.Float64, Vb, i), dr.gather(mi.Float64, Ab, i), dr.gather(mi.Float64, vb, i))
+        j += 1
+    return dec, sums
+
+
+def _lane_rows(first, total: int):
+    """The row of each of ``total`` lanes when row i owns lanes first[i] … first[i+1]−1 (``first``
+    ascending from 0; a row may own none): the number of rows i ≥ 1 that begin at or before the lane."""
+    n = dr.width(first)
+    marks = dr.zeros(mi.UInt32, total)
+    i = dr.arange(mi.UInt32, 1, n) if n > 1 else None
+    if i is not None:
+        f = dr.gather(mi.UInt32, first, i)
+        dr.scatter_reduce(dr.ReduceOp.Add, marks, mi.UInt32(1), f, f < total)
+    return dr.prefix_reduce(dr.ReduceOp.Add, marks, exclusive=False)
+
+
 def _fold(sums, Vr, Ar, v):
     """A round's (Vr, Ar, visible samples) added to a lane's float64 sums (s_v, s_v2, s_a, s_a2, s_vis)."""
     s_v, s_v2, s_a, s_a2, s_vis = sums
     return s_v + Vr, s_v2 + Vr * Vr, s_a + Ar, s_a2 + Ar * Ar, s_vis + v
+
+
+def _lanes_per_round() -> bool:
+    """Whether the penumbra wavefronts run a lane per (point, round): on a GPU, which traces each
+    lane's rays alone. The CPU (Embree) traces packets of neighbouring lanes, and there a ray's
+    result can depend on the rays beside it, so the CPU keeps the lane per point of the committed bits."""
+    return dr.backend_v(mi.Float) == dr.JitBackend.CUDA
+
+
+def _point_lanes(mi_scene, gsi, emitter, pts, hashes, k, kk, alpha, spec, live, Rl, T, S):
+    """A wavefront of one lane per point (the CPU's): rows ``live`` of ``pts`` sample rounds Rl … T−1,
+    each lane looping over its point's rounds, the lanes ordered by their number of rounds (longest
+    first: lanes that finish together side by side, on the CPU 1.7× faster than in point order).
+    Returns (sums at T, sums at T, the rows: as an index array and in numpy)."""
+    order = np.argsort(-(T - Rl), kind="stable")
+    rows = live[order]
+    q = mi.UInt32(rows.astype(np.uint32))
+    si_q = dr.gather(type(gsi), gsi, dr.gather(mi.UInt32, pts, q))
+    Sq = _more_rounds(mi_scene, si_q, emitter, q, mi.UInt32(Rl[order].astype(np.uint32)),
+                      mi.UInt32(T[order].astype(np.uint32)), hashes, k, kk, alpha,
+                      shading.range_window(spec, si_q.p), tuple(dr.gather(mi.Float64, x, q) for x in S))
+    return Sq, Sq, q, rows
+
+
+def _round_lanes(mi_scene, gsi, emitter, pts, hashes, k, kk, alpha, spec, live, Rl, T, G, S):
+    """A wavefront of one lane per (point, round) (a GPU's): rows ``live`` of ``pts`` sample rounds
+    Rl … G−1, a point's rounds in adjacent lanes, each lane one round (``_lane_rounds``) written to
+    a float64 buffer; a second kernel (``_fold_rounds``) adds each point's rounds to its sums in
+    round order. Returns (sums at T, sums at G, the rows: as an index array and in numpy)."""
+    cnt = G - Rl                          # rounds each point samples now (0: a decision only)
+    off = np.cumsum(cnt) - cnt            # its first lane
+    total = int(cnt.sum())
+    q = mi.UInt32(live.astype(np.uint32))
+    Sq = tuple(dr.gather(mi.Float64, x, q) for x in S)
+    if not total:
+        return Sq, Sq, q, live
+    offd = mi.UInt32(off.astype(np.uint32))
+    row = _lane_rows(offd, total)
+    key = dr.gather(mi.UInt32, q, row)
+    rnd = dr.gather(mi.UInt32, mi.UInt32(Rl.astype(np.uint32)), row) + dr.arange(mi.UInt32, total) \
+        - dr.gather(mi.UInt32, offd, row)
+    si_l = dr.gather(type(gsi), gsi, dr.gather(mi.UInt32, pts, key))
+    vals = _lane_rounds(mi_scene, si_l, emitter, key, rnd, hashes, k, kk, alpha, shading.range_window(spec, si_l.p))
+    dr.eval(vals)
+    dec, Sq = _fold_rounds(vals, offd, mi.UInt32((T - Rl).astype(np.uint32)), mi.UInt32(cnt.astype(np.uint32)), Sq)
+    return dec, Sq, q, live
+
+
+def _read(*xs):
+    """Equally long float64 device arrays read back to the host as numpy copies, in one transfer."""
+    n = dr.width(xs[0])
+    buf = dr.zeros(mi.Float64, n * len(xs))
+    for i, x in enumerate(xs):
+        dr.scatter(buf, x, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, i * n))
+    dr.eval(buf)
+    return tuple(np.array(buf.numpy().reshape(len(xs), n), copy=True))
 
 
 def _plan(R, s_v, s_v2, s_vis, planned, kk: int, target_se: float, max_rounds: int):
@@ -170,15 +280,15 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
 
     Few, large wavefronts instead of one small kernel per round: every valid point's first
     ``min_rounds`` rounds in one kernel (a loop over the rounds), then, for the points whose
-    samples disagreed, one kernel per decision of the stopping rule (the pilot's end, then each
-    plan's end) with a lane per point looping over its rounds up to it, the lanes ordered by their
-    number of rounds (longest first) so that neighbouring lanes finish together. A point's random
-    numbers are ``sample_light``'s: PCG32 keyed by (seed, round) and the point's rank among the
-    valid points (first wavefront) or among the points that sample on (later ones); its rounds
-    are summed in order in float64. The per-point state stays on the device (the valid and the
-    penumbra points are found with ``dr.compress``); the host reads back only the three sums the
-    rule needs, of the points still sampling. ``progress(n)`` is called with each wavefront's
-    shadow rays.
+    samples disagreed, one wavefront per decision of the stopping rule (the pilot's end, then each
+    plan's end): on a GPU a lane per (point, round) and a kernel that sums each point's rounds in
+    order (``_round_lanes``), on the CPU a lane per point looping over its rounds (``_point_lanes``).
+    A point's random numbers are ``sample_light``'s: PCG32 keyed by (seed, round) and the point's
+    rank among the valid points (first wavefront) or among the points that sample on (later
+    ones); its rounds are summed in order in float64. The per-point state stays on the device
+    (the valid and the penumbra points are found with ``dr.compress``); the host reads back only
+    the three sums the rule needs, of the points deciding. ``progress(n)`` is called with each
+    wavefront's shadow rays.
     """
 
     scene, gb = frame.scene, frame.gbuffer
@@ -188,6 +298,7 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
         k, min_rounds, max_rounds = 1, 1, 1
     kk = k * k
     alpha = bool(getattr(scene, "has_alpha", False))
+    per_round = _lanes_per_round()
     active = dr.compress(mi.Bool(gb.valid))  # the valid points, in order
     n_act = dr.width(active)
     hashes = _round_hashes(seed, max_rounds)
@@ -209,7 +320,7 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
         if progress:
             progress(n_act * n_first * kk)
         # the points whose samples all agreed are done; the others sample on, each to its own plan:
-        # a wavefront per decision (the pilot's end, each plan's end), one lane per point
+        # a wavefront per decision (the pilot's end, each plan's end)
         ri = dr.compress((sums[4] != 0) & (sums[4] != dr.opaque(mi.Float64, n_first * kk)))
         n_rest = dr.width(ri)
         if n_rest:
@@ -218,45 +329,56 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
             pts = dr.gather(mi.UInt32, active, ri)
             S = [dr.gather(mi.Float64, x, ri) for x in sums]
             dr.eval(pts, S)
-            s_v, s_v2, s_vis = S[0].numpy(), S[1].numpy(), S[4].numpy()
-            R = np.full(n_rest, n_first, np.int64)
-            # the rule at the first check (already a plan when min_rounds reaches the pilot's rounds)
-            planned, done = _plan(R, s_v, s_v2, s_vis, np.zeros(n_rest, np.int64), kk, target_se, max_rounds)
-            live = np.nonzero(~done)[0]          # rows of ``pts`` still sampling
+            R = np.full(n_rest, n_first, np.int64)   # rounds at each point's latest decision
+            Rs = R.copy()                             # rounds summed in S (≥ R: see G below)
+            planned = np.zeros(n_rest, np.int64)
+            if n_first < min(MIN_SE_ROUNDS, max_rounds):
+                # the rule at the first check decides nothing before the pilot's end (no point here is
+                # unanimous): no sums to read back
+                s_v, s_v2, s_vis = (np.empty(n_rest) for _ in range(3))
+                done = np.zeros(n_rest, bool)
+            else:  # the rule at the first check: already a plan (min_rounds reaches the pilot's rounds)
+                s_v, s_v2, s_vis = _read(S[0], S[1], S[4])
+                planned, done = _plan(R, s_v, s_v2, s_vis, planned, kk, target_se, max_rounds)
+            live = np.nonzero(~done)[0]          # rows of ``pts`` still sampling, in order
             while len(live):
                 # up to the next decision: the pilot's end, or the end of the plan
-                T = np.where(planned[live] > 0, planned[live], MIN_SE_ROUNDS)
+                Pl = planned[live]
+                T = np.where(Pl > 0, Pl, MIN_SE_ROUNDS)
                 T = np.minimum(np.maximum(T, R[live] + 1), max_rounds)
-                cnt = T - R[live]
-                # longest first: lanes that finish together side by side (on the CPU 1.7× faster than
-                # in point order); the order changes no bit (a lane's random numbers are its point's)
-                order = np.argsort(-cnt, kind="stable")
-                rows = live[order]
-                q = mi.UInt32(rows.astype(np.uint32))
-                si_q = dr.gather(type(gb.si), gb.si, dr.gather(mi.UInt32, pts, q))
-                Sq = _more_rounds(scene.mi_scene, si_q, emitter, q, mi.UInt32(R[rows].astype(np.uint32)),
-                                  mi.UInt32(T[order].astype(np.uint32)), hashes, opq["k"], opq["kk"], alpha,
-                                  shading.range_window(spec, si_q.p), tuple(dr.gather(mi.Float64, x, q) for x in S))
-                dr.eval(Sq)  # before the scatters: scattered into while its kernel still reads S, Sq came out wrong
+                # lanes per round: every plan made at the pilot's end reaches G (2·MIN_SE_ROUNDS or
+                # more), so the pilot's wavefront samples up to G, summing its decision's snapshot at T
+                G = np.where(Pl == 0, np.minimum(np.maximum(T, 2 * MIN_SE_ROUNDS), max_rounds), T) if per_round else T
+                Rl = Rs[live]
+                args = (scene.mi_scene, gb.si, emitter, pts, hashes, opq["k"], opq["kk"], alpha, spec)
+                if per_round:
+                    dec, Sq, q, rows = _round_lanes(*args, live, Rl, T, G, S)
+                else:
+                    dec, Sq, q, rows = _point_lanes(*args, live, Rl, T, S)
+                dr.eval(dec, Sq)  # before the scatters: scattered into while its kernel still read S, Sq was wrong
                 for x, y in zip(S, Sq):
                     dr.scatter(x, y, q)
                 dr.eval(S)
-                s_v[rows], s_v2[rows], s_vis[rows] = Sq[0].numpy(), Sq[1].numpy(), Sq[4].numpy()
-                R[live] = T
-                n_more = int(cnt.sum()) * kk
+                s_v[rows], s_v2[rows], s_vis[rows] = _read(dec[0], dec[1], dec[4])
+                n_more = int((G - Rl).sum()) * kk
+                R[live], Rs[live] = T, G
                 rays += n_more
                 if progress:
                     progress(n_more)
                 planned[live], done = _plan(T, s_v[live], s_v2[live], s_vis[live], planned[live], kk, target_se,
                                             max_rounds)
                 live = live[~done]
+            # a point's sampling ends at a decision, never past it (a plan made at the pilot's end covers
+            # G, and no point that sampled on can become unanimous): S holds each point's final sums
+            assert np.array_equal(R, Rs)
             for x, y in zip(sums + (rounds,), S + [mi.Float64(R.astype(np.float64))]):
                 dr.scatter(x, y, ri)
     return _light_truth(gb, sums, rounds, active, n_act, kk, bool(spec.is_delta), rays)
 
 
-def _point_values(size, sums, rounds, active, n_act, kk, delta):
-    """V, se(V)², A, se(A)², samples and bound at every G-buffer point (float32, on the device)."""
+def _point_values(size, sums, rounds, active, n_act, kk, delta, flat=False):
+    """V, se(V)², A, se(A)², samples and bound at every G-buffer point (float32, on the device);
+    ``flat``: se(V) and se(A) instead of their squares, and all six in one array, one after the other."""
     s_v, s_v2, s_a, s_a2, s_vis = sums
     R = dr.maximum(rounds, 1.0)
 
@@ -277,25 +399,36 @@ def _point_values(size, sums, rounds, active, n_act, kk, delta):
 
     out = [full(s_v / R, 1.0), full(se_v * se_v, 0.0), full(s_a / R, 1.0), full(se_a * se_a, 0.0), full(n, 0.0),
            full(bound, 0.0)]
-    dr.eval(out)
-    return out
+    if not flat:
+        dr.eval(out)
+        return out
+    # the square root of the float32 square in float64, rounded to float32: numpy's float32 square
+    # root (correctly rounded; a float64 root rounded to float32 is too, 53 ≥ 2·24 + 2 bits)
+    for i in (1, 3):
+        out[i] = mi.Float32(dr.sqrt(mi.Float64(out[i])))
+    buf = dr.zeros(mi.Float32, 6 * size)
+    for i, x in enumerate(out):
+        dr.scatter(buf, x, dr.arange(mi.UInt32, size) + dr.opaque(mi.UInt32, i * size))
+    dr.eval(buf)
+    return buf
 
 
 def _light_truth(gb, sums, rounds, active, n_act, kk: int, delta: bool, rays: int) -> LightTruth:
     """The images of a light's truth from each valid point's sums and rounds, computed on the
     device (float64, the operations of the numpy version they replace) and read back as the
-    float32 images ``gb.to_image`` makes; a point that is not valid is lit with no samples."""
+    float32 images ``gb.to_image`` makes; a point that is not valid is lit with no samples. With
+    one point per pixel the six images are the flat arrays reshaped, read back in one transfer."""
+    s2 = gb.ss * gb.ss  # a pixel's value is the mean of its s² independent sub-pixel estimates
     if not n_act:  # no surface in view: every point lit, no samples
         ones, zeros = np.ones(gb.size, np.float32), np.zeros(gb.size, np.float32)
         out = [ones, zeros, ones, zeros, zeros, zeros]
+    elif s2 == 1:  # gb.to_image's bits: its mean over one sub-pixel is the value, its √(se²/1) the root above
+        im = np.asarray(_point_values(gb.size, sums, rounds, active, n_act, kk, delta, flat=True).numpy(),
+                        np.float32).reshape(6, gb.height, gb.width)
+        return LightTruth(V=im[0], V_se=im[1], A=im[2], A_se=im[3], samples=im[4], bound=im[5], rays=int(rays))
     else:
         out = _point_values(gb.size, sums, rounds, active, n_act, kk, delta)
-    s2 = gb.ss * gb.ss  # a pixel's value is the mean of its s² independent sub-pixel estimates
-    if s2 == 1:  # one point per pixel: the image is the flat array reshaped (gb.to_image's bits, no copy)
-        def img(x):
-            return np.asarray(x.numpy() if hasattr(x, "numpy") else x, np.float32).reshape(gb.height, gb.width)
-    else:
-        img = gb.to_image
+    img = gb.to_image if s2 > 1 else (lambda x: np.asarray(x, np.float32).reshape(gb.height, gb.width))
 
     def se_img(se2):
         return np.sqrt(img(se2) / s2)
