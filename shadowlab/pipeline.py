@@ -299,7 +299,7 @@ def technique_metrics(frame, truth, result) -> tuple[dict, dict, dict]:
         lights[l.name] = (v, tv, valid)
         pen |= penumbra_mask(tv, valid)
     per_light, pooled = pooled_visibility(lights)
-    shaded = compose(frame, result.visibility)
+    shaded = compose(frame, result.visibility, result.colour)
     m = compare_shaded(shaded, truth.shaded, penumbra=pen, valid=mask)
     m.update(pooled)
     imgs = {"shaded": shaded, "vis": vis_imgs}

@@ -283,3 +283,91 @@ def test_against_the_truth_on_parallel_planes(mitsuba_backend):
     assert m["ssss"]["rmse_penumbra"] < 0.35 * m["pcf"]["rmse_penumbra"]
     assert m23["rmse_penumbra"] < 0.09, m23["rmse_penumbra"]
     assert m["ssss"]["leak_rate"] == 0.0 and m["ssss"]["overdark_rate"] == 0.0
+
+
+# ---------------------------------------------------------------------------------------------
+# the min filter (``penumbra = "min_filter"``): Dr.Jit kernels against scipy
+
+class _MapView:
+    """What the min filter reads of a LightView: z, hit, nfaces, res, dr(name), _dr."""
+
+    def __init__(self, z, hit):
+        self.z, self.hit = z, hit
+        self.nfaces, self.res = z.shape[0], z.shape[1]
+        self._dr = {}
+
+    def dr(self, name):
+        import mitsuba as mi
+        if name not in self._dr:
+            self._dr[name] = mi.Float(np.ascontiguousarray(getattr(self, name), np.float32).ravel())
+        return self._dr[name]
+
+
+def _random_map(F, N, seed):
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(0.5, 20.0, (F, N, N)).astype(np.float32)
+    hit = rng.random((F, N, N)) > 0.3
+    hit[0, :9, :9] = False                        # whole empty blocks: +inf survives r = 0
+    if F > 1:
+        hit[F - 1] = False                        # an empty face: +inf (3e38) at every radius
+    z[~hit] = np.float32(0.01)                    # nearer than anything: read only if the mask is lost
+    return z, hit
+
+
+def _numpy_min_filter(z, hit, r, B):
+    from scipy.ndimage import minimum_filter1d
+    F, N, _ = z.shape
+    Nl = -(-N // B)
+    p = np.full((F, Nl * B, Nl * B), np.inf, np.float32)
+    p[:, :N, :N] = np.where(hit, z, np.inf)
+    low = p.reshape(F, Nl, B, Nl, B).min(axis=(2, 4))
+    if r > 0:
+        low = minimum_filter1d(low, 2 * r + 1, axis=2, mode="nearest")
+        low = minimum_filter1d(low, 2 * r + 1, axis=1, mode="nearest")
+    return low
+
+
+@pytest.mark.parametrize("F, N", [(6, 37), (1, 64)])
+def test_min_filter_kernels_equal_scipy(mitsuba_backend, F, N):
+    """Block min of B×B texels (N not a multiple of B: the last blocks are partial), then ±r
+    along x and y clamped at the borders (scipy's mode="nearest"), every face on its own; bit for bit."""
+    from shadowlab.techniques.ssss import MIN_FILTER_DOWNSAMPLE as B, min_filter_map
+    assert B == 4
+    z, hit = _random_map(F, N, seed=F * 100 + N)
+    view = _MapView(z, hit)
+    Nl = -(-N // B)
+    for r in (0, 1, 2, 3, Nl - 1, Nl + 7, 1000):
+        got = min_filter_map(view, r).numpy().reshape(F, Nl, Nl)
+        ref = _numpy_min_filter(z, hit, r, B)
+        assert np.array_equal(got, ref), (F, N, r, np.argwhere(got != ref)[:5])
+    if F > 1:
+        assert np.all(np.isinf(min_filter_map(view, 3).numpy().reshape(F, Nl, Nl)[F - 1]))
+
+
+def test_min_filtered_reads_the_receivers_texels(mitsuba_backend):
+    """``SSSS._min_filtered``: r = ⌈max over active receivers of w_search / 2 / B⌉ (inactive ones do
+    not count), +inf → 3e38, each receiver reads its face's low-resolution texel (clamped)."""
+    import mitsuba as mi
+    from shadowlab.techniques.ssss import MIN_FILTER_DOWNSAMPLE as B
+    F, N = 6, 37
+    Nl = -(-N // B)
+    z, hit = _random_map(F, N, seed=7)
+    rng = np.random.default_rng(8)
+    n = 4000
+    u = rng.uniform(-6.0, N + 6.0, n).astype(np.float32)
+    v = rng.uniform(-6.0, N + 6.0, n).astype(np.float32)
+    face = rng.integers(0, F, n).astype(np.uint32)
+    act = rng.random(n) > 0.2
+    for r in (0, 1, 3, Nl + 2):
+        ws = rng.uniform(0.0, 2.0 * B * r, n).astype(np.float32)
+        ws[np.flatnonzero(act)[0]] = 2.0 * B * r      # the largest active width gives r exactly
+        ws[~act] = 1e6                                # inactive receivers do not widen the filter
+        view = _MapView(z, hit)
+        rec = {"u": mi.Float(u), "v": mi.Float(v), "face": mi.UInt32(face)}
+        got = get("ssss")._min_filtered(view, rec, mi.Float(ws), mi.Bool(act)).numpy()
+        low = _numpy_min_filter(z, hit, r, B)
+        low = np.where(np.isfinite(low), low, np.float32(3.0e38))
+        ix = np.clip(np.floor(u).astype(np.int64) // B, 0, Nl - 1)
+        iy = np.clip(np.floor(v).astype(np.int64) // B, 0, Nl - 1)
+        assert np.array_equal(got, low[face, iy, ix]), r
+        assert (got == np.float32(3.0e38)).any()

@@ -142,7 +142,7 @@ class Objective:
         return float(loss[0])
 
     def _flip(self, res) -> float:
-        shaded = compose(self.frame, res.visibility)
+        shaded = compose(self.frame, res.visibility, res.colour)
         fm = flip_map(shaded, self.truth.shaded)
         return float(fm[self.penumbra].mean()) if self.penumbra.any() else float(fm[self.truth.mask].mean())
 

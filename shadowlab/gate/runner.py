@@ -174,7 +174,7 @@ def _technique_candidate(ctx: _Context, g: GateSpec):
     res = t.render(frame, params)
     dr.eval(*res.visibility.values())
     vis = {l.name: frame.image(res.visibility[l.name]) for l in frame.lights}
-    img = vis[g.light] if g.target == "visibility" else compose(frame, res.visibility)
+    img = vis[g.light] if g.target == "visibility" else compose(frame, res.visibility, res.colour)
     return img, None, None, vis
 
 

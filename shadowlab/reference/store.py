@@ -265,6 +265,9 @@ def _channels(truth: Truth) -> dict:
         ch[f"V.{name}"], ch[f"V.{name}.se"] = lt.V, lt.V_se
         ch[f"A.{name}"], ch[f"A.{name}.se"] = lt.A, lt.A_se
         ch[f"N.{name}"], ch[f"B.{name}"] = lt.samples, lt.bound
+        if getattr(lt, "V_rgb", None) is not None:  # coloured shadows (translucent casters): C.<light>.R/G/B
+            for c, ax in zip("RGB", range(3)):
+                ch[f"C.{name}.{c}"], ch[f"C.{name}.se.{c}"] = lt.V_rgb[..., ax], lt.V_rgb_se[..., ax]
         for c, ax in zip("RGB", range(3)):
             ch[f"U.{name}.{c}"] = truth.U[name][..., ax]
     for c, ax in zip("RGB", range(3)):
@@ -519,8 +522,11 @@ def load(scene_spec, resolution=None, base: Path | None = None, check_hash: bool
     lights, U = {}, {}
     for l in scene_spec.lights:
         n = l.name
+        coloured = f"C.{n}.R" in ch
         lights[n] = LightTruth(V=ch[f"V.{n}"], V_se=ch[f"V.{n}.se"], A=ch[f"A.{n}"], A_se=ch[f"A.{n}.se"],
-                               samples=ch[f"N.{n}"], bound=ch[f"B.{n}"])
+                               samples=ch[f"N.{n}"], bound=ch[f"B.{n}"],
+                               V_rgb=np.stack([ch[f"C.{n}.{c}"] for c in "RGB"], -1) if coloured else None,
+                               V_rgb_se=np.stack([ch[f"C.{n}.se.{c}"] for c in "RGB"], -1) if coloured else None)
         U[n] = np.stack([ch[f"U.{n}.{c}"] for c in "RGB"], -1)
     rgb = lambda p: np.stack([ch[f"{p}.{c}"] for c in "RGB"], -1) if f"{p}.R" in ch else None  # noqa: E731
     truth = Truth(lights=lights, U=U, shaded=rgb("shaded"), shaded_var=rgb("shaded.var"), mitsuba=rgb("mitsuba"),

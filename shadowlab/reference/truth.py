@@ -42,6 +42,19 @@ point's own stream, its rank among the valid points for the first rounds and amo
 that sample on after them for all later ones, whatever lane runs the round; a fixed seed gives
 the same bits.
 
+Allocation across lights (the scene's ``truth_allocation``). ``per_light`` (the default): every
+light's V to ``target_se`` at every pixel, so a scene's cost grows with its lights however little
+each adds to a pixel. ``contribution``: light L's target at a point is
+
+    t_L = target_se · sqrt(S / U_L),   U_L its unshadowed light there (the channel sum), S = Σ_M U_M,
+
+capped at :data:`CONTRIBUTION_MAX_SE`, and a point where the light adds nothing (outside its range,
+facing away) is not sampled for it at all: V = 1 there, with no samples. The shaded pixel's error then stays within the same bound
+relative to its light, Σ_L U_L² t_L² = target_se² · S · Σ_L U_L = (target_se · S)², and since a
+point's rounds grow as 1/t², each light's rays there are in proportion to its share U_L / S of the
+pixel's unshadowed light: a light that adds 5 % of a pixel's light gets a twentieth of the rays
+(:func:`light_targets`). A light's own V is then only as precise as its share needs.
+
 The rounds are independent, so the standard error is an honest estimate. The shaded truth is
 Σ_L U_L · V_L at the same pixel centres as the techniques (so metrics isolate shadows), and
 Mitsuba's own ``direct`` integrator image (``mi.render``, box filter over the pixel) is stored
@@ -69,6 +82,9 @@ from ..scene.lights import forward as lights_fwd
 SEED_MAX = (2 ** 32 - 1000) // 1000
 
 MIN_SE_ROUNDS = 8  # pilot rounds of a penumbra pixel before its number of rounds is planned
+#: allocation "contribution": the largest standard error a light's visibility is sampled to (where its
+#: share of a pixel's light is below (target/cap)², and where it has none)
+CONTRIBUTION_MAX_SE = 0.05
 PLAN_MARGIN = 1.25  # planned rounds = margin · pilot variance / target²
 
 
@@ -81,6 +97,10 @@ class LightTruth:
     samples: np.ndarray    # (H, W) shadow rays per pixel
     bound: np.ndarray      # (H, W) error bound for unanimous pixels (3/n), 0 elsewhere
     rays: int = 0
+    #: with translucent casters: (H, W, 3) RGB visibility V_c = Σ f·τ_c / Σ f (V is its channel
+    #: mean) and its standard error; None elsewhere
+    V_rgb: np.ndarray | None = None
+    V_rgb_se: np.ndarray | None = None
 
 
 @dataclass
@@ -96,13 +116,28 @@ class Truth:
     stats: dict = field(default_factory=dict)
 
 
-def _round_values(mi_scene, si, emitter, rng, k, kk, alpha, win):
+def _round_values(mi_scene, si, emitter, rng, k, kk, rays, win):
     """One round of ``sample_light``'s k×k samples with shadow rays at ``si`` from ``rng``: the
     round's ratio Vr = Σ f·v / Σ f and visible fraction Ar (float64, as the numpy version
-    computed them) and its number of visible samples."""
-    _, fv, fsum, v = light_samples(mi_scene, si, emitter, rng, k, True, True, alpha, win, radiance=False)
-    fv, fsum, v = mi.Float64(fv), mi.Float64(fsum), mi.Float64(v)
-    return dr.select(fsum > 0, fv / dr.select(fsum > 0, fsum, 1.0), 1.0), v / mi.Float64(kk), v
+    computed them) and its number of visible samples. ``rays``: (alpha, table) of
+    ``light_samples`` (the scene's alpha-tested and translucent casters).
+
+    With translucent casters (``table``) v is a sample's channel-mean transmittance, Vr and Ar
+    are their channel means, three more values follow, the round's RGB ratios Σ f·τ_c / Σ f,
+    and the third value is the unanimity code (lit − dark + k²)/2 of the round's fully lit and
+    fully blocked samples: k² or 0 exactly when they all were (without translucency it is the
+    number of visible samples, as before), so the stopping rule's test is the same."""
+    alpha, table = rays
+    out = light_samples(mi_scene, si, emitter, rng, k, True, True, alpha, win, radiance=False, table=table)
+    fv, fsum, v = mi.Float64(out[1]), mi.Float64(out[2]), mi.Float64(out[3])
+    ok = fsum > 0
+    inv = dr.select(ok, fsum, 1.0)
+    Vr = dr.select(ok, fv / inv, 1.0)
+    if table is None:
+        return Vr, v / mi.Float64(kk), v
+    rgb, lit, dark = out[4], mi.Float64(out[5]), mi.Float64(out[6])
+    code = (lit - dark + mi.Float64(kk)) * 0.5
+    return (Vr, v / mi.Float64(kk), code) + tuple(dr.select(ok, mi.Float64(c) / inv, 1.0) for c in (rgb.x, rgb.y, rgb.z))
 
 
 def _round_hashes(seed: int, max_rounds: int):
@@ -111,27 +146,33 @@ def _round_hashes(seed: int, max_rounds: int):
     return mi.UInt64(np.array([seed_hash(seed, r) for r in range(max(max_rounds, 1))], np.uint64))
 
 
-def _round(mi_scene, si, emitter, idx, hashes, r, k, kk, alpha, win, sums):
+def _round(mi_scene, si, emitter, idx, hashes, r, k, kk, rays, win, sums):
     """Round ``r`` at every lane (PCG32 seeded by the round's hash and the lane's stream key
     ``idx``), folded into the lane's float64 sums (s_v, s_v2, s_a, s_a2, s_vis)."""
     rng = mi.PCG32(dr.width(idx), dr.gather(mi.UInt64, hashes, r), mi.UInt64(idx))
-    return _fold(sums, *_round_values(mi_scene, si, emitter, rng, k, kk, alpha, win))
+    return _fold(sums, *_round_values(mi_scene, si, emitter, rng, k, kk, rays, win))
+
+
+def n_sums(rays) -> int:
+    """Float64 sums per point: (Σ Vr, Σ Vr², Σ Ar, Σ Ar², Σ v), and with translucent casters
+    (Σ V_c, Σ V_c²) for each channel c."""
+    return 5 if rays[1] is None else 11
 
 
 @dr.syntax
-def _fixed_rounds(mi_scene, si, emitter, idx, hashes, n_rounds, k, kk, alpha, win):
+def _fixed_rounds(mi_scene, si, emitter, idx, hashes, n_rounds, k, kk, rays, win):
     """Rounds 0 … n_rounds−1 at every lane: one wavefront (a symbolic loop over the rounds)."""
     n = dr.width(idx)
-    sums = tuple(dr.zeros(mi.Float64, n) for _ in range(5))
+    sums = tuple(dr.zeros(mi.Float64, n) for _ in range(n_sums(rays)))
     r = dr.zeros(mi.UInt32, n)
     while r < n_rounds:
-        sums = _round(mi_scene, si, emitter, idx, hashes, r, k, kk, alpha, win, sums)
+        sums = _round(mi_scene, si, emitter, idx, hashes, r, k, kk, rays, win, sums)
         r += 1
     return sums
 
 
 @dr.syntax
-def _more_rounds(mi_scene, si, emitter, key, r, T, hashes, k, kk, alpha, win, sums):
+def _more_rounds(mi_scene, si, emitter, key, r, T, hashes, k, kk, rays, win, sums):
     """Rounds ``r`` … ``T``−1 of each lane (a point of rank ``key``; ``r`` and ``T`` per lane), folded
     into its float64 ``sums`` in round order: one wavefront (a symbolic loop over the rounds).
 
@@ -142,18 +183,18 @@ def _more_rounds(mi_scene, si, emitter, key, r, T, hashes, k, kk, alpha, win, su
     lane, key64 = dr.arange(mi.UInt64, n), mi.UInt64(key)
     r = mi.UInt32(r)
     while r < T:
-        sums = _lane_round(mi_scene, si, emitter, key64, lane, r, hashes, k, kk, alpha, win, sums)
+        sums = _lane_round(mi_scene, si, emitter, key64, lane, r, hashes, k, kk, rays, win, sums)
         r += 1
     return sums
 
 
-def _lane_round(mi_scene, si, emitter, key, lane, r, hashes, k, kk, alpha, win, sums):
+def _lane_round(mi_scene, si, emitter, key, lane, r, hashes, k, kk, rays, win, sums):
     """Round ``r`` of each lane of ``_more_rounds`` folded into its sums (PCG32 as documented there)."""
     rng = mi.PCG32(dr.width(key), dr.gather(mi.UInt64, hashes, r) + key - lane, key + key - lane)
-    return _fold(sums, *_round_values(mi_scene, si, emitter, rng, k, kk, alpha, win))
+    return _fold(sums, *_round_values(mi_scene, si, emitter, rng, k, kk, rays, win))
 
 
-def _lane_rounds(mi_scene, si, emitter, key, r, hashes, k, kk, alpha, win):
+def _lane_rounds(mi_scene, si, emitter, key, r, hashes, k, kk, rays, win):
     """One round per lane: lane i is round ``r[i]`` of the point of rank ``key[i]`` (Vr, Ar and
     visible samples, float64, as ``_round_values``).
 
@@ -162,7 +203,7 @@ def _lane_rounds(mi_scene, si, emitter, key, r, hashes, k, kk, alpha, win):
     rank ``key`` starts round r at the round's hash + key on sequence 2·key, wherever its lane lies."""
     lane, key64 = dr.arange(mi.UInt64, dr.width(key)), mi.UInt64(key)
     rng = mi.PCG32(dr.width(key), dr.gather(mi.UInt64, hashes, r) + key64 - lane, key64 + key64 - lane)
-    return _round_values(mi_scene, si, emitter, rng, k, kk, alpha, win)
+    return _round_values(mi_scene, si, emitter, rng, k, kk, rays, win)
 
 
 @dr.syntax
@@ -170,16 +211,15 @@ def _fold_rounds(vals, start, n_dec, n_all, sums):
     """Each point's rounds, lanes ``start`` … ``start + n_all − 1`` of ``vals`` (Vr, Ar, v), added
     to its float64 ``sums`` in round order; returns the sums after its first ``n_dec`` of them (the
     decision's) and after all of them."""
-    Vb, Ab, vb = vals
     j = dr.zeros(mi.UInt32, dr.width(start))
     while j < n_dec:
         i = start + j
-        sums = _fold(sums, dr.gather(mi.Float64, Vb, i), dr.gather(mi.Float64, Ab, i), dr.gather(mi.Float64, vb, i))
+        sums = _fold(sums, *[dr.gather(mi.Float64, x, i) for x in vals])
         j += 1
     dec = sums
     while j < n_all:
         i = start + j
-        sums = _fold(sums, dr.gather(mi.Float64, Vb, i), dr.gather(mi.Float64, Ab, i), dr.gather(mi.Float64, vb, i))
+        sums = _fold(sums, *[dr.gather(mi.Float64, x, i) for x in vals])
         j += 1
     return dec, sums
 
@@ -196,10 +236,14 @@ def _lane_rows(first, total: int):
     return dr.prefix_reduce(dr.ReduceOp.Add, marks, exclusive=False)
 
 
-def _fold(sums, Vr, Ar, v):
-    """A round's (Vr, Ar, visible samples) added to a lane's float64 sums (s_v, s_v2, s_a, s_a2, s_vis)."""
-    s_v, s_v2, s_a, s_a2, s_vis = sums
-    return s_v + Vr, s_v2 + Vr * Vr, s_a + Ar, s_a2 + Ar * Ar, s_vis + v
+def _fold(sums, Vr, Ar, v, *rgb):
+    """A round's (Vr, Ar, visible samples[, V_R, V_G, V_B]) added to a lane's float64 sums (s_v,
+    s_v2, s_a, s_a2, s_vis[, s_R, s_R², s_G, s_G², s_B, s_B²])."""
+    s_v, s_v2, s_a, s_a2, s_vis = sums[:5]
+    out = (s_v + Vr, s_v2 + Vr * Vr, s_a + Ar, s_a2 + Ar * Ar, s_vis + v)
+    for i, c in enumerate(rgb):
+        out += (sums[5 + 2 * i] + c, sums[6 + 2 * i] + c * c)
+    return out
 
 
 def _lanes_per_round() -> bool:
@@ -209,7 +253,7 @@ def _lanes_per_round() -> bool:
     return dr.backend_v(mi.Float) == dr.JitBackend.CUDA
 
 
-def _point_lanes(mi_scene, gsi, emitter, pts, hashes, k, kk, alpha, spec, live, Rl, T, S):
+def _point_lanes(mi_scene, gsi, emitter, pts, hashes, k, kk, rays, spec, live, Rl, T, S):
     """A wavefront of one lane per point (the CPU's): rows ``live`` of ``pts`` sample rounds Rl … T−1,
     each lane looping over its point's rounds, the lanes ordered by their number of rounds (longest
     first: lanes that finish together side by side, on the CPU 1.7× faster than in point order).
@@ -219,12 +263,12 @@ def _point_lanes(mi_scene, gsi, emitter, pts, hashes, k, kk, alpha, spec, live, 
     q = mi.UInt32(rows.astype(np.uint32))
     si_q = dr.gather(type(gsi), gsi, dr.gather(mi.UInt32, pts, q))
     Sq = _more_rounds(mi_scene, si_q, emitter, q, mi.UInt32(Rl[order].astype(np.uint32)),
-                      mi.UInt32(T[order].astype(np.uint32)), hashes, k, kk, alpha,
+                      mi.UInt32(T[order].astype(np.uint32)), hashes, k, kk, rays,
                       shading.range_window(spec, si_q.p), tuple(dr.gather(mi.Float64, x, q) for x in S))
     return Sq, Sq, q, rows
 
 
-def _round_lanes(mi_scene, gsi, emitter, pts, hashes, k, kk, alpha, spec, live, Rl, T, G, S):
+def _round_lanes(mi_scene, gsi, emitter, pts, hashes, k, kk, rays, spec, live, Rl, T, G, S):
     """A wavefront of one lane per (point, round) (a GPU's): rows ``live`` of ``pts`` sample rounds
     Rl … G−1, a point's rounds in adjacent lanes, each lane one round (``_lane_rounds``) written to
     a float64 buffer; a second kernel (``_fold_rounds``) adds each point's rounds to its sums in
@@ -242,7 +286,7 @@ def _round_lanes(mi_scene, gsi, emitter, pts, hashes, k, kk, alpha, spec, live, 
     rnd = dr.gather(mi.UInt32, mi.UInt32(Rl.astype(np.uint32)), row) + dr.arange(mi.UInt32, total) \
         - dr.gather(mi.UInt32, offd, row)
     si_l = dr.gather(type(gsi), gsi, dr.gather(mi.UInt32, pts, key))
-    vals = _lane_rounds(mi_scene, si_l, emitter, key, rnd, hashes, k, kk, alpha, shading.range_window(spec, si_l.p))
+    vals = _lane_rounds(mi_scene, si_l, emitter, key, rnd, hashes, k, kk, rays, shading.range_window(spec, si_l.p))
     dr.eval(vals)
     dec, Sq = _fold_rounds(vals, offd, mi.UInt32((T - Rl).astype(np.uint32)), mi.UInt32(cnt.astype(np.uint32)), Sq)
     return dec, Sq, q, live
@@ -258,9 +302,10 @@ def _read(*xs):
     return tuple(np.array(buf.numpy().reshape(len(xs), n), copy=True))
 
 
-def _plan(R, s_v, s_v2, s_vis, planned, kk: int, target_se: float, max_rounds: int):
+def _plan(R, s_v, s_v2, s_vis, planned, kk: int, target_se, max_rounds: int):
     """The stopping rule of the module docstring at points that have ``R`` rounds (numpy): plan
-    the rounds from the pilot, re-plan when the plan fell short. Returns (planned, done)."""
+    the rounds from the pilot, re-plan when the plan fell short; ``target_se`` one number or one
+    per point. Returns (planned, done)."""
     n = R * kk
     unanimous = (s_vis == 0) | (s_vis == n)
     mean = s_v / R
@@ -274,8 +319,29 @@ def _plan(R, s_v, s_v2, s_vis, planned, kk: int, target_se: float, max_rounds: i
     return planned, done
 
 
-def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: float = 0.005,
-               min_rounds: int = 4, max_rounds: int = 64, seed: int = 0, progress=None) -> LightTruth:
+def light_targets(U: dict, target_se: float) -> dict:
+    """Per-light target standard errors of the ``contribution`` allocation (module docstring):
+    ``U`` light name -> unshadowed light (numpy, (..., 3): flat points or an image), the result
+    light name -> targets (...,) float64.
+
+    >>> U = {"a": np.array([[0.6, 0.1, 0.1], [1.0, 1.0, 1.0]]), "b": np.array([[0.1, 0.05, 0.05], [0, 0, 0]])}
+    >>> t = light_targets(U, 0.005)
+    >>> [round(float(x), 5) for x in t["a"]], [round(float(x), 5) for x in t["b"]]
+    ([0.00559, 0.005], [0.01118, 0.05])
+    """
+    lum = {n: np.asarray(u, np.float64).sum(-1) for n, u in U.items()}
+    S = sum(lum.values())
+    out = {}
+    for n, l in lum.items():
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = target_se * np.sqrt(S / l)
+        out[n] = np.where(l > 0, np.minimum(t, CONTRIBUTION_MAX_SE), CONTRIBUTION_MAX_SE)
+    return out
+
+
+def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se=0.005,
+               min_rounds: int = 4, max_rounds: int = 64, seed: int = 0, progress=None,
+               points=None) -> LightTruth:
     """Adaptive ground-truth visibility of one light (see the module docstring).
 
     Few, large wavefronts instead of one small kernel per round: every valid point's first
@@ -288,7 +354,10 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
     ones); its rounds are summed in order in float64. The per-point state stays on the device
     (the valid and the penumbra points are found with ``dr.compress``); the host reads back only
     the three sums the rule needs, of the points deciding. ``progress(n)`` is called with each
-    wavefront's shadow rays.
+    wavefront's shadow rays. ``target_se``: one number, or one per G-buffer point (numpy; the
+    ``contribution`` allocation's :func:`light_targets`). ``points``: optional numpy bool per
+    G-buffer point, the points to sample (the ``contribution`` allocation skips those the light
+    does not reach: V = 1 there, no samples, as where there is no surface).
     """
 
     scene, gb = frame.scene, frame.gbuffer
@@ -297,22 +366,25 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
     if spec.is_delta:
         k, min_rounds, max_rounds = 1, 1, 1
     kk = k * k
-    alpha = bool(getattr(scene, "has_alpha", False))
+    # the shadow rays' path: through alpha-tested casters' holes, through translucent casters
+    paths = (bool(getattr(scene, "has_alpha", False)),
+             scene.translucency() if getattr(scene, "has_translucent", False) else None)
     per_round = _lanes_per_round()
-    active = dr.compress(mi.Bool(gb.valid))  # the valid points, in order
+    valid = gb.valid if points is None else gb.valid & mi.Bool(np.asarray(points, bool).reshape(-1))
+    active = dr.compress(mi.Bool(valid))  # the valid points (that it samples), in order
     n_act = dr.width(active)
     hashes = _round_hashes(seed, max_rounds)
     opq = dict(k=dr.opaque(mi.UInt32, k), kk=dr.opaque(mi.UInt32, kk))
     n_first = min(max(min_rounds, 1), max_rounds)
     rays = 0
     # per valid point, on the device: the five float64 sums (Σ Vr, Σ Vr², Σ Ar, Σ Ar², visible samples)
-    sums = tuple(dr.zeros(mi.Float64, n_act) for _ in range(5))
+    sums = tuple(dr.zeros(mi.Float64, n_act) for _ in range(n_sums(paths)))
     rounds = dr.zeros(mi.Float64, n_act)
     if n_act and n_first > 0:
         # wavefront 1: every valid point's first rounds (stream key: rank among the valid points)
         si = dr.gather(type(gb.si), gb.si, active)
         sums = _fixed_rounds(scene.mi_scene, si, emitter, dr.arange(mi.UInt32, n_act), hashes,
-                             dr.opaque(mi.UInt32, n_first), opq["k"], opq["kk"], alpha,
+                             dr.opaque(mi.UInt32, n_first), opq["k"], opq["kk"], paths,
                              shading.range_window(spec, si.p))
         rounds = dr.full(mi.Float64, n_first, n_act)
         dr.eval(sums, rounds)
@@ -329,6 +401,9 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
             pts = dr.gather(mi.UInt32, active, ri)
             S = [dr.gather(mi.Float64, x, ri) for x in sums]
             dr.eval(pts, S)
+            # each row's target: one for all, or its point's
+            tgt = (np.asarray(target_se, np.float64).reshape(-1)[pts.numpy()] if np.ndim(target_se)
+                   else float(target_se))
             R = np.full(n_rest, n_first, np.int64)   # rounds at each point's latest decision
             Rs = R.copy()                             # rounds summed in S (≥ R: see G below)
             planned = np.zeros(n_rest, np.int64)
@@ -339,7 +414,7 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
                 done = np.zeros(n_rest, bool)
             else:  # the rule at the first check: already a plan (min_rounds reaches the pilot's rounds)
                 s_v, s_v2, s_vis = _read(S[0], S[1], S[4])
-                planned, done = _plan(R, s_v, s_v2, s_vis, planned, kk, target_se, max_rounds)
+                planned, done = _plan(R, s_v, s_v2, s_vis, planned, kk, tgt, max_rounds)
             live = np.nonzero(~done)[0]          # rows of ``pts`` still sampling, in order
             while len(live):
                 # up to the next decision: the pilot's end, or the end of the plan
@@ -350,7 +425,7 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
                 # more), so the pilot's wavefront samples up to G, summing its decision's snapshot at T
                 G = np.where(Pl == 0, np.minimum(np.maximum(T, 2 * MIN_SE_ROUNDS), max_rounds), T) if per_round else T
                 Rl = Rs[live]
-                args = (scene.mi_scene, gb.si, emitter, pts, hashes, opq["k"], opq["kk"], alpha, spec)
+                args = (scene.mi_scene, gb.si, emitter, pts, hashes, opq["k"], opq["kk"], paths, spec)
                 if per_round:
                     dec, Sq, q, rows = _round_lanes(*args, live, Rl, T, G, S)
                 else:
@@ -365,7 +440,8 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
                 rays += n_more
                 if progress:
                     progress(n_more)
-                planned[live], done = _plan(T, s_v[live], s_v2[live], s_vis[live], planned[live], kk, target_se,
+                planned[live], done = _plan(T, s_v[live], s_v2[live], s_vis[live], planned[live], kk,
+                                            tgt[live] if np.ndim(tgt) else tgt,
                                             max_rounds)
                 live = live[~done]
             # a point's sampling ends at a decision, never past it (a plan made at the pilot's end covers
@@ -373,13 +449,43 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se: f
             assert np.array_equal(R, Rs)
             for x, y in zip(sums + (rounds,), S + [mi.Float64(R.astype(np.float64))]):
                 dr.scatter(x, y, ri)
-    return _light_truth(gb, sums, rounds, active, n_act, kk, bool(spec.is_delta), rays)
+    lt = _light_truth(gb, sums, rounds, active, n_act, kk, bool(spec.is_delta), rays)
+    if len(sums) > 5:
+        lt.V_rgb, lt.V_rgb_se = _rgb_images(gb, sums, rounds, active, n_act)
+    return lt
+
+
+def _rgb_images(gb, sums, rounds, active, n_act):
+    """(V_rgb, V_rgb_se) images (H, W, 3) from the channel sums of a light with translucent casters
+    (1 and 0 where no surface is), as :func:`_light_truth` makes V and V_se."""
+    s2 = gb.ss * gb.ss
+    if not n_act:
+        return np.ones((gb.height, gb.width, 3), np.float32), np.zeros((gb.height, gb.width, 3), np.float32)
+    R = dr.maximum(rounds, 1.0)
+    img = gb.to_image if s2 > 1 else (lambda x: np.asarray(x, np.float32).reshape(gb.height, gb.width))
+
+    def full(x, outside):
+        out = dr.full(mi.Float64, outside, gb.size)
+        dr.scatter(out, x, active)
+        return mi.Float32(out)
+
+    mean, se = [], []
+    for c in range(3):
+        s, s_2 = sums[5 + 2 * c], sums[6 + 2 * c]
+        m = s / R
+        var = dr.maximum(s_2 / R - m * m, 0.0) * R / dr.maximum(R - 1.0, 1.0)
+        v = dr.select(rounds > 1, var / R, 0.0)
+        a, b = full(m, 1.0), full(v, 0.0)
+        dr.eval(a, b)
+        mean.append(img(a.numpy()))
+        se.append(np.sqrt(img(b.numpy()) / s2))
+    return np.stack(mean, -1), np.stack(se, -1).astype(np.float32)
 
 
 def _point_values(size, sums, rounds, active, n_act, kk, delta, flat=False):
     """V, se(V)², A, se(A)², samples and bound at every G-buffer point (float32, on the device);
     ``flat``: se(V) and se(A) instead of their squares, and all six in one array, one after the other."""
-    s_v, s_v2, s_a, s_a2, s_vis = sums
+    s_v, s_v2, s_a, s_a2, s_vis = sums[:5]
     R = dr.maximum(rounds, 1.0)
 
     def _se(s, s2):
@@ -473,22 +579,29 @@ def render_truth(frame: FrameContext, *, k: int = 8, target_se: float = 0.005, m
                  seed: int = 0, spp: int = 256, progress=None) -> Truth:
     """The whole ground truth of a frame: every light's visibility, Σ U·V and mi.render. ``stats``
     holds the cost, in all and per light (``per_light``: seconds and shadow rays of each light's
-    visibility), which ``meta.json`` records: a many-light truth's cost grows with its lights."""
+    visibility), which ``meta.json`` records: a many-light truth's cost grows with its lights, less
+    so with the scene's ``truth_allocation = "contribution"`` (module docstring; ``stats["allocation"]``)."""
     gb = frame.gbuffer
     t0 = time.perf_counter()
+    allocation = getattr(frame.scene.spec, "truth_allocation", "per_light")
+    flatU = {l.name: vec_numpy(frame.unshadowed[l.name]) for l in frame.lights} if allocation == "contribution" else {}
+    targets = light_targets(flatU, target_se) if flatU else {}
     lights, U, cost = {}, {}, {}
     shaded = 0.0
     var = 0.0
     for l in frame.lights:
         dr.sync_thread()
         t_l = time.perf_counter()
-        lt = visibility(frame, l.name, k=k, target_se=target_se, max_rounds=max_rounds, seed=seed, progress=progress)
+        lt = visibility(frame, l.name, k=k, target_se=targets.get(l.name, target_se), max_rounds=max_rounds,
+                        seed=seed, progress=progress,
+                        points=flatU[l.name].sum(-1) > 0 if flatU else None)
         dr.sync_thread()
         cost[l.name] = {"time_s": time.perf_counter() - t_l, "shadow_rays": int(lt.rays)}
         lights[l.name] = lt
         U[l.name] = gb.to_image(vec_numpy(frame.unshadowed[l.name]))
-        shaded = shaded + U[l.name] * lt.V[..., None]
-        var = var + (U[l.name] * lt.V_se[..., None]) ** 2
+        V, V_se = (lt.V_rgb, lt.V_rgb_se) if lt.V_rgb is not None else (lt.V[..., None], lt.V_se[..., None])
+        shaded = shaded + U[l.name] * V
+        var = var + (U[l.name] * V_se) ** 2
     dr.sync_thread()
     t_vis = time.perf_counter() - t0
     mean, mvar = mitsuba_render(frame.scene, spp=spp, seed=seed) if spp else (None, None)
@@ -498,22 +611,26 @@ def render_truth(frame: FrameContext, *, k: int = 8, target_se: float = 0.005, m
              "shadow_rays": int(sum(l.rays for l in lights.values())),
              "max_std_error": float(max(float(l.V_se[mask].max()) if mask.any() else 0.0 for l in lights.values())),
              "spp_mitsuba": spp, "strata": k, "target_se": target_se, "max_rounds": max_rounds, "seed": seed,
-             "per_light": cost}
+             "per_light": cost, "allocation": allocation}
     return Truth(lights=lights, U=U, shaded=np.asarray(shaded, np.float32), shaded_var=np.asarray(var, np.float32),
                  mitsuba=mean, mitsuba_var=mvar, mask=mask, view_depth=gb.to_image(gb.view_depth.reshape(-1)),
                  stats=stats)
 
 
 def target_missed(truth: Truth, target_se: float, max_rounds: int, worst: int = 32) -> dict:
-    """The pixels whose standard error is still above ``target_se`` after the round cap.
+    """The pixels whose standard error is still above ``target_se`` after the round cap (with the
+    ``contribution`` allocation, ``stats["allocation"]``, above each light's own target there,
+    :func:`light_targets` of the stored U).
 
     Returns ``{"target_se", "max_rounds", "pixels", "worst_se", "lights": {light: {"pixels",
     "worst_se", "worst": [[x, y, se], …]}}}`` (the ``worst`` pixels of each light, worst first);
     ``pixels`` is 0 when every pixel met the target. ``meta.json`` records it as ``target_missed``."""
     lights = {}
+    per = truth.stats.get("allocation") == "contribution"
+    targets = light_targets(truth.U, target_se) if per else {}
     for name, lt in truth.lights.items():
         se = np.where(truth.mask, lt.V_se, 0.0)
-        ys, xs = np.nonzero(se > target_se)
+        ys, xs = np.nonzero(se > (targets[name] * (1 + 1e-6) if per else target_se))
         if len(xs) == 0:
             continue
         order = np.argsort(-se[ys, xs], kind="stable")[:worst]

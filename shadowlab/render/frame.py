@@ -94,19 +94,24 @@ class FrameContext:
         return self._cache["own_screen"]
 
     def light_view(self, light_name: str, res: int | None = None, bits: int | None = None,
-                   backface: bool = False, fit=None, layers: int = 1) -> LightView:
+                   backface: bool = False, fit=None, layers: int = 1, translucent: bool = False) -> LightView:
         """The light's depth map, cast once per (light, resolution, depth bits, back faces, fit,
-        layers); ``fit`` None is :class:`~shadowlab.render.lightview.SceneSphere` (the whole scene);
-        ``layers`` > 1 keeps that many surfaces per texel (the rasterizer's bias)."""
+        layers, translucency); ``fit`` None is :class:`~shadowlab.render.lightview.SceneSphere` (the
+        whole scene); ``layers`` > 1 keeps that many surfaces per texel (the rasterizer's bias);
+        ``translucent`` (only in a scene with translucent shapes; ignored elsewhere): the opaque
+        depth plus the translucent casters' colour and depth."""
         spec = self.scene.spec.light(light_name)
         self.require_mitsuba_geometry()
         fit = SceneSphere() if fit is None else fit
         key = (light_name, int(res or spec.shadow_map), int(bits or spec.depth_bits), bool(backface), fit)
         if layers > 1:
             key += (int(layers),)
+        translucent = bool(translucent and self.scene.has_translucent)
+        if translucent:
+            key += ("translucent",)
         if key not in self._views:
             self._views[key] = light_view(self.scene, spec, res=key[1], bits=key[2], backface=key[3], fit=fit,
-                                          layers=int(layers))
+                                          layers=int(layers), translucent=translucent)
         return self._views[key]
 
     def triangles(self, segments: int = 64) -> np.ndarray:

@@ -37,6 +37,13 @@ and :meth:`LightView.lookup` read the face's own values.
 Alpha-tested casters ([Buljan 2020, §2.4], "Transparentni objekti"): a texel ray passes through texels of
 an ``alpha_texture`` whose alpha is below the shape's ``alpha_cutoff`` (the depth pass's
 ``discard``), so the map stores the next surface behind a leaf card's holes.
+
+Translucent casters ([Tamás 2015, §6.5]; ``light_view(..., translucent=True)``, in a scene with
+translucent shapes): the shadow map stores depth plus colour. ``depth`` is then the first *opaque*
+surface (translucent ones are passed), ``trans_rgb`` the product of the τ of every translucent
+surface the texel ray crossed before it (the shadow's colour; 1 where none) and ``translucent`` a
+LightView of the nearest of them (depth, z, slope; empty where none): a receiver behind it, by the
+same biased depth test as an opaque caster's, gets the colour.
 """
 
 from __future__ import annotations
@@ -50,7 +57,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..scene import lights as lights_mod
-from ..scene.build import transparent
+from ..scene.build import surface_tau, transparent
 from .camera import Camera
 
 MAX_HALF_FOV = math.radians(80.0)
@@ -434,6 +441,10 @@ class LightView:
     #: bias (every fragment biased, the smallest kept): their quantised NDC depth (1 = none) and slope
     layer_depth: np.ndarray | None = None
     layer_slope: np.ndarray | None = None
+    #: translucent casters (``translucent=True``): (F, N, N, 3) τ product before the first opaque
+    #: surface, and the map of the nearest translucent surfaces (a LightView; empty where none)
+    trans_rgb: np.ndarray | None = None
+    translucent: "LightView | None" = None
     _dr: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -468,6 +479,21 @@ class LightView:
         iy = dr.clip(mi.Int32(iy), 0, N - 1)
         idx = (mi.UInt32(face) + (layer - 1 if layer else 0) * self.nfaces) * (N * N) + mi.UInt32(iy * N + ix)
         return dr.gather(mi.Float, self.dr(name), idx)
+
+    def tint(self, rec):
+        """The colour ``trans_rgb`` of each receiver's texel (mi.Color3f; 1 in a view without
+        translucency). Whether the receiver lies behind the translucent caster is the biased depth
+        test against :attr:`translucent` (``shadow_map.depth_test``), which the caller makes."""
+        if self.trans_rgb is None:
+            return mi.Color3f(1.0)
+        for c in range(3):
+            if f"trans_rgb{c}" not in self._dr:
+                self._dr[f"trans_rgb{c}"] = mi.Float(np.ascontiguousarray(self.trans_rgb[..., c], np.float32).ravel())
+        N = self.res
+        ix = dr.clip(mi.Int32(dr.floor(rec["u"])), 0, N - 1)
+        iy = dr.clip(mi.Int32(dr.floor(rec["v"])), 0, N - 1)
+        idx = mi.UInt32(rec["face"]) * (N * N) + mi.UInt32(iy * N + ix)
+        return mi.Color3f(*[dr.gather(mi.Float, self._dr[f"trans_rgb{c}"], idx) for c in range(3)])
 
     def lookup(self, p):
         """Project world points ``p`` (mi.Point3f) into the light view (Dr.Jit).
@@ -545,7 +571,7 @@ def texel_rays(proj: Projection):
 
 
 def light_view(scene, light, res: int | None = None, bits: int | None = None, backface: bool = False,
-               fit=None, layers: int = 1) -> LightView:
+               fit=None, layers: int = 1, translucent: bool = False) -> LightView:
     """Render ``light``'s depth map by ray casting (module docstring has the conventions).
 
     ``backface=True`` keeps the first surface facing away from the light (front-face culling,
@@ -554,6 +580,8 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     ``layers`` > 1 also keeps the next ``layers`` − 1 surfaces along each texel's ray (same
     skipping rules), so that a rasterizer's bias, added to every fragment before the depth test,
     can be emulated (:func:`shadowlab.techniques.shadow_map.stored_depth`).
+    ``translucent`` (a scene with translucent shapes): the depth of the first opaque surface, and
+    the translucent casters' colour and depth in ``trans_rgb`` / ``trans_depth`` (module docstring).
     """
 
     proj = projection(light, scene, res, fit)
@@ -571,7 +599,19 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     shapes = scene.mi_scene.shapes_dr()
     own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
     alpha = bool(getattr(scene, "has_alpha", False))
-    si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha)
+    table = scene.translucency() if translucent and getattr(scene, "has_translucent", False) else None
+    tr = {}
+    if table is None:
+        si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha)
+    else:
+        si, tau, first = _cast_translucent(scene.mi_scene, ray, backface, own_ptr, alpha, table)
+        hf, sf, dqf, zf = _texel_depths(proj, first, bits)
+        shp = (F, N, N)
+        near = LightView(light=light, proj=proj, bits=bits, backface=backface, depth=dqf.reshape(shp),
+                         z=zf.astype(np.float32).reshape(shp), slope=sf.astype(np.float32).reshape(shp),
+                         hit=hf.reshape(shp))
+        tr = {"trans_rgb": np.stack([np.asarray(c.numpy(), np.float32) for c in (tau.x, tau.y, tau.z)], -1)
+              .reshape(F, N, N, 3), "translucent": near}
     h, slope, dq, zq = _texel_depths(proj, si, bits)
     extra, before = [], h
     for _ in range(layers - 1):  # a few layers, each one wavefront over every texel
@@ -587,7 +627,7 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
                "layer_slope": np.stack([e[1].reshape(shp) for e in extra])}
     return LightView(light=light, proj=proj, bits=bits, backface=backface, depth=dq.reshape(shp),
                      z=zq.astype(np.float32).reshape(shp), slope=slope.astype(np.float32).reshape(shp),
-                     hit=h.reshape(shp), **lay)
+                     hit=h.reshape(shp), **lay, **tr)
 
 
 def _texel_depths(proj, si, bits):
@@ -651,6 +691,44 @@ def _cast_loop(mi_scene, ray, backface, own_ptr, alpha=False):
         skip = _skip(si, ray, backface, own_ptr, alpha)
         i += 1
     return si
+
+
+@dr.syntax
+def _cast_translucent(mi_scene, ray, backface, own_ptr, alpha, table):
+    """:func:`cast_first_hit` passing translucent surfaces too: (first opaque hit, τ product of
+    the translucent surfaces crossed before it (mi.Color3f), the first translucent hit as a
+    :class:`_Hit` (not valid where there was none))."""
+    si = mi_scene.ray_intersect(ray)
+    n = dr.width(si.p)
+    first_p, first_n, found = dr.zeros(mi.Point3f, n), dr.zeros(mi.Vector3f, n), dr.zeros(mi.Bool, n)
+    tau = mi.Color3f(1.0)
+    i = mi.UInt32(0)
+    trans, tau_s = surface_tau(si, table)
+    own = _skip(si, ray, backface, own_ptr, alpha) & ~trans
+    while dr.hint((own | trans) & (i < MAX_SKIPS_ALPHA), max_iterations=-1):
+        tau = dr.select(trans, tau * tau_s, tau)
+        new = trans & ~found
+        first_p = dr.select(new, si.p, first_p)
+        first_n = dr.select(new, si.n, first_n)
+        found |= trans
+        ray = si.spawn_ray(ray.d)
+        si = mi_scene.ray_intersect(ray)
+        trans, tau_s = surface_tau(si, table)
+        own = _skip(si, ray, backface, own_ptr, alpha) & ~trans
+        i += 1
+    return si, tau, _Hit(first_p, first_n, found)
+
+
+@dataclass
+class _Hit:
+    """The fields of a hit that :func:`_texel_depths` reads."""
+
+    p: object
+    n: object
+    valid: object
+
+    def is_valid(self):
+        return self.valid
 
 
 def _skip(si, ray, backface, own_ptr, alpha=False):

@@ -30,6 +30,12 @@ so its image ignores ranges (``Scene.mitsuba_notes``).
 Shadow rays are Mitsuba's ``ray_test``, except in a scene with alpha-tested casters
 (``scene.has_alpha``): ``ray_test`` ignores BSDF opacity, so there :func:`occluded_alpha`
 intersects and continues through transparent texels (a symbolic loop; slower, so only there).
+
+Translucent casters (``scene.has_translucent``): a shadow ray's visibility becomes RGB, the
+straight-line transmittance of the segment (:func:`transmitted`): 0 when an opaque surface lies on
+it, else the product of the τ of every translucent surface it crosses. This is the truth's model
+of translucency, the one the screen-space technique assumes [Tamás 2015, §6.5]: no refraction, no
+scattering inside the caster, no light reflected by it toward the receiver.
 """
 
 from __future__ import annotations
@@ -38,7 +44,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..scene.build import transparent
+from ..scene.build import surface_tau, transparent
 from .gbuffer import vec_numpy
 
 
@@ -131,11 +137,48 @@ def occluded_alpha(mi_scene, ray, active):
     return active & si.is_valid()
 
 
+MAX_TRANSLUCENT_LAYERS = 16  # translucent surfaces a shadow ray may cross; a ray still on one after that is blocked
+
+
 @dr.syntax
-def light_samples(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False, win=None, radiance=True):
+def transmitted(mi_scene, ray, active, table, alpha=False):
+    """Straight-line transmittance (mi.Color3f) of the shadow segment ``ray`` (to ``ray.maxt``):
+    1 where nothing lies on it, 0 where an opaque surface does, else the product of the τ of
+    every translucent surface crossed (``table``: ``Scene.translucency()``; ``alpha``: also pass
+    transparent texels of alpha-tested casters, with τ = 1). Segments that ``ray_test`` finds
+    empty are done at its cost; the others intersect and continue through translucent hits (a
+    symbolic loop)."""
+    target = ray(ray.maxt)
+    blocked = mi.Bool(active) & mi_scene.ray_test(ray, active)
+    flags = mi.RayFlags.Minimal | mi.RayFlags.UV
+    si = mi_scene.ray_intersect(ray, flags, False, blocked)
+    through, tau_s = surface_tau(si, table, blocked)
+    if alpha:
+        through |= transparent(si, blocked)
+    tau = mi.Color3f(1.0)
+    i = mi.UInt32(0)
+    while dr.hint(through & (i < MAX_TRANSLUCENT_LAYERS), max_iterations=-1):
+        tau *= tau_s
+        si = mi_scene.ray_intersect(si.spawn_ray_to(target), flags, False, through)
+        through, tau_s = surface_tau(si, table, through)
+        if alpha:
+            through |= transparent(si, through)
+        i += 1
+    return dr.select(~blocked, mi.Color3f(1.0), dr.select(si.is_valid(), mi.Color3f(0.0), tau))
+
+
+@dr.syntax
+def light_samples(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False, win=None, radiance=True,
+                  table=None):
     """k² samples of ``emitter`` at ``si`` (see :func:`sample_light`); ``win``: per-point range
     window (:func:`range_window`) multiplying every sample's contribution, None = none;
     ``radiance=False``: ``f`` is not summed (returned as zero; the truth needs only fv, fsum, v).
+
+    ``table`` (``Scene.translucency()``, with ``shadow``): a sample's visibility is its segment's
+    RGB transmittance τ (:func:`transmitted`) and ``v`` sums its channel mean; three more values
+    come back: ``fv_rgb`` (Color3f, Σ |f|·τ per channel; ``fv`` is its channel mean), ``lit``
+    and ``dark`` (Float, samples with τ = 1, resp. 0, in every channel: where either is k², the
+    samples were unanimous).
 
     Sample i's stratum is (i mod k, i div k), kept as two counters rather than divided out per
     sample (the same values; on the CPU, together with ``radiance=False``, the truth's samples
@@ -147,6 +190,10 @@ def light_samples(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False
     fv = dr.zeros(mi.Float, n)
     fsum = dr.zeros(mi.Float, n)
     v = dr.zeros(mi.Float, n)
+    coloured = shadow and table is not None
+    fv_rgb = mi.Color3f(0.0) if coloured else None
+    lit = dr.zeros(mi.Float, n) if coloured else None
+    dark = dr.zeros(mi.Float, n) if coloured else None
     i = mi.UInt32(0)
     kk = k * k
     sx = mi.UInt32(0)
@@ -169,7 +216,13 @@ def light_samples(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False
         if win is not None:
             c = c * win
         mag = c.x + c.y + c.z
-        if shadow:
+        if coloured:
+            tau = transmitted(mi_scene, si.spawn_ray_to(ds.p), si.is_valid() & (mag > 0), table, alpha)
+            vis = (tau.x + tau.y + tau.z) / 3.0
+            fv_rgb += mag * tau
+            lit += dr.select((tau.x == 1.0) & (tau.y == 1.0) & (tau.z == 1.0), 1.0, 0.0)
+            dark += dr.select((tau.x == 0.0) & (tau.y == 0.0) & (tau.z == 0.0), 1.0, 0.0)
+        elif shadow:
             if not alpha:
                 occluded = mi_scene.ray_test(si.spawn_ray_to(ds.p), si.is_valid() & (mag > 0))
             else:
@@ -183,7 +236,7 @@ def light_samples(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False
         fsum += mag
         v += vis
         i += 1
-    return f, fv, fsum, v
+    return (f, fv, fsum, v, fv_rgb, lit, dark) if coloured else (f, fv, fsum, v)
 
 
 def unshadowed(scene, gbuffer, light_name: str, k: int = 16, seed: int = 0):
@@ -197,14 +250,20 @@ def unshadowed(scene, gbuffer, light_name: str, k: int = 16, seed: int = 0):
     return U
 
 
-def compose(frame, visibility: dict) -> np.ndarray:
+def compose(frame, visibility: dict, colour: dict | None = None) -> np.ndarray:
     """Shaded image (H, W, 3) = Σ_L U_L · V_L, averaged over sub-pixels.
 
-    ``visibility`` maps light name -> flat per-point visibility (Dr.Jit Float or numpy)."""
+    ``visibility`` maps light name -> flat per-point visibility (Dr.Jit Float or numpy);
+    ``colour`` (optional) light name -> flat per-point RGB visibility (Dr.Jit Color3f or numpy
+    (n, 3)), used instead for the lights it has (coloured shadows of translucent casters)."""
     out = None
     for name, U in frame.unshadowed.items():
-        V = visibility[name]
-        V = V.numpy() if hasattr(V, "numpy") else np.asarray(V)
-        c = vec_numpy(U) * V.reshape(-1, 1)
+        if colour and name in colour:
+            V = colour[name]
+            V = vec_numpy(V) if hasattr(V, "x") else np.asarray(V).reshape(-1, 3)
+        else:
+            V = visibility[name]
+            V = (V.numpy() if hasattr(V, "numpy") else np.asarray(V)).reshape(-1, 1)
+        c = vec_numpy(U) * V
         out = c if out is None else out + c
     return frame.gbuffer.to_image(out)

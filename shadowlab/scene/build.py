@@ -9,6 +9,12 @@ at the hit's Mitsuba uv (rectangle: u = (x + 1)/2, v = (y + 1)/2 in its local [�
 row 0 at v = 0; other shapes: Mitsuba's own uv, meshes: their uv, if any).
 ``Scene.has_alpha`` tells the ray paths (G-buffer, light views, ground-truth shadow rays) to look
 through transparent texels (:func:`transparent`); without alpha shapes they stay as they were.
+
+A translucent shape (``transmittance``, ``opacity``) keeps its plain diffuse BSDF: the camera sees
+it as an opaque surface and it is lit as one. Only shadow rays and light views see through it, by
+straight-line transmission: each crossing multiplies the light by the shape's τ (``ShapeSpec.tau``),
+looked up by :func:`surface_tau` from :meth:`Scene.translucency` (the Mitsuba shapes of each
+translucent shape and their τ); without translucent shapes every ray path stays as it was.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 
@@ -128,6 +135,26 @@ class Scene:
         (``ray_test``, a single ``ray_intersect``) are exact and are kept."""
         return any(s.alpha_tested for s in self.spec.shapes)
 
+    @property
+    def has_translucent(self) -> bool:
+        """Some shape is a translucent caster (``transmittance``): shadow rays and the light views
+        made for translucency (:func:`shadowlab.render.lightview.light_view`) then multiply the
+        τ of every translucent surface they cross (:func:`surface_tau`)."""
+        return any(s.translucent for s in self.spec.shapes)
+
+    def translucency(self) -> tuple:
+        """((shape pointer, τ as mi.Color3f), ...) of every Mitsuba shape of a translucent
+        ShapeSpec (a cylinder's caps included): the table :func:`surface_tau` reads."""
+        shapes = self.mi_scene.shapes_dr()
+        out = []
+        for spec in self.spec.shapes:
+            if not spec.translucent:
+                continue
+            for i, n in enumerate(self.shape_names):
+                if n == spec.name or n.startswith(spec.name + "__"):
+                    out.append((dr.gather(type(shapes), shapes, i), mi.Color3f(*spec.tau)))
+        return tuple(out)
+
     def mitsuba_notes(self) -> dict:
         """Caveats of Mitsuba's own ``direct`` integrator image (``mi.render``) for this scene, for a
         reference's meta.json; empty when there are none. Lights with a ``range``: ``direct`` cannot
@@ -144,6 +171,11 @@ class Scene:
                 "channels) does not see through their transparent texels: shadow rays (ray_test) are "
                 "blocked by the whole card and camera rays stop on it (holes render black). Compare "
                 "with the V.* and shaded.* channels, which do see through them.")
+        if self.has_translucent:
+            notes["mitsuba_direct_ignores_translucency"] = (
+                "scene has translucent shapes (transmittance): Mitsuba's direct integrator (the mitsuba.* "
+                "channels) treats them as opaque blockers of shadow rays; the V.*, C.* and shaded.* channels "
+                "use straight-line transmission through them. Compare with those.")
         ranged = [l.name for l in self.spec.lights if getattr(l, "range", None) is not None]
         if ranged:
             notes["mitsuba_direct_ignores_range"] = (
@@ -194,6 +226,20 @@ def transparent(si, active=True):
     valid = si.is_valid() & active
     t = si.bsdf().eval_null_transmission(si, valid)
     return valid & (t[0] > 0.5)
+
+
+def surface_tau(si, table, active=True):
+    """(mi.Bool translucent, mi.Color3f τ) of the hits ``si``: whether each valid hit is a surface of
+    a translucent shape and its τ there (1 elsewhere). ``table``: :meth:`Scene.translucency`. A free
+    function, for symbolic loops (like :func:`transparent`)."""
+    valid = si.is_valid() & active
+    hit = mi.Bool(False)
+    tau = mi.Color3f(1.0)
+    for ptr, t in table:  # one select per translucent shape, unrolled into the kernel
+        mine = valid & (si.shape == ptr)
+        hit |= mine
+        tau = dr.select(mine, t, tau)
+    return hit, tau
 
 
 def sensor_dict(cam, spp: int = 1, seed: int = 0) -> dict:

@@ -14,12 +14,16 @@ stay few as n grows). One light in three is
 a disk spot (half-angle 70°) aimed at a point below it, the others spherical point lights; radii
 0.06–0.12 m, powers 50–130 W, pale colours. Each cell holds one caster beside its light: a box
 (a Mitsuba triangle mesh) or a sphere, 0.2–0.45 m. The camera looks down on the whole floor from
-the front. Every number is drawn from ``numpy.random.default_rng(seed)``, so (n, seed) gives the
-same scene, and the same scene hash, on every machine.
+the front. One light cell in four (i mod 4 = 1) also holds a coloured translucent pane
+(README, "Translucent casters"), a horizontal 0.6 m square halfway between the light and the
+floor, offset toward the cell's centre, with a pale transmittance colour and opacity 0.6–1. Every
+number is drawn from ``numpy.random.default_rng(seed)`` (the panes' from a second stream,
+``default_rng(seed + 1)``, so the lights and opaque casters are those of the scene without panes),
+so (n, seed) gives the same scene, and the same scene hash, on every machine.
 
 >>> spec = many_lights_spec(32, seed=1)
->>> len(spec.lights), all(l.range for l in spec.lights)
-(32, True)
+>>> len(spec.lights), all(l.range for l in spec.lights), sum(s.translucent for s in spec.shapes)
+(32, True, 8)
 >>> many_lights_spec(32, seed=1).digest() == spec.digest()
 True
 """
@@ -44,6 +48,7 @@ def many_lights_data(n: int, seed: int = 0, resolution: tuple = (128, 128)) -> d
     if n < 1:
         raise ValueError(f"many_lights: n = {n}; expected at least one light")
     rng = np.random.default_rng(int(seed))
+    glass = np.random.default_rng(int(seed) + 1)
     g = math.ceil(math.sqrt(n))
     half = 0.5 * g * CELL
     lights, shapes = [], [{"name": "floor", "type": "rectangle", "rotate": [1, 0, 0, -90], "scale": half,
@@ -64,6 +69,12 @@ def many_lights_data(n: int, seed: int = 0, resolution: tuple = (128, 128)) -> d
             else:
                 light.update(kind="point", position=r3(pos))
             lights.append(light)
+            if i % 4 == 1:
+                pane = [0.5 * (pos[0] + cx), 0.5 * pos[1], 0.5 * (pos[2] + cz)]
+                shapes.append({"name": f"glass{i:03d}", "type": "rectangle", "translate": r3(pane),
+                               "rotate": [1, 0, 0, -90], "scale": 0.3, "albedo": [0.6, 0.6, 0.6],
+                               "transmittance": r3(0.15 + 0.85 * glass.random(3)),
+                               "opacity": round(float(glass.uniform(0.6, 1.0)), 3)})
         # a caster beside the cell's centre, whether or not the cell has a light
         ox, oz = rng.uniform(-0.25, 0.25, 2) * CELL
         s = float(rng.uniform(0.2, 0.45))
@@ -75,7 +86,7 @@ def many_lights_data(n: int, seed: int = 0, resolution: tuple = (128, 128)) -> d
             shapes.append({"name": f"ball{i:03d}", "type": "sphere", "center": r3([cx + ox, s, cz + oz]),
                            "radius": round(s, 3), "albedo": [0.7, 0.7, 0.7]})
     d = 1.05 * g * CELL
-    return {"name": f"many_lights_{n}",
+    return {"name": f"many_lights_{n}", "truth_allocation": "contribution",
             "description": f"{n} generated point and spot lights with ranges over a {2 * half:g} m floor with "
                            f"casters (shadowlab.scene.generate, seed {int(seed)}).",
             "camera": {"position": [0.0, round(0.95 * d, 3), round(0.85 * d, 3)], "target": [0.0, 0.0, 0.0],

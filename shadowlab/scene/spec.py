@@ -31,7 +31,7 @@ import json
 import math
 import re
 import sys
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 if sys.version_info >= (3, 11):
@@ -206,10 +206,29 @@ class ShapeSpec:
     two_sided: bool = True
     alpha_texture: str | None = None  # alpha-tested caster: image file, resolved relative to the scene file
     alpha_cutoff: float = 0.5         # texels with alpha < cutoff are transparent (discarded)
+    transmittance: tuple | None = None  # translucent caster: RGB fraction of light let through, in [0, 1]
+    opacity: float = 1.0                # share of the surface that filters (the rest lets all light through)
 
     @property
     def alpha_tested(self) -> bool:
         return self.alpha_texture is not None
+
+    @property
+    def translucent(self) -> bool:
+        return self.transmittance is not None
+
+    @property
+    def tau(self) -> tuple:
+        """The straight-line transmittance of one crossing of the surface, per RGB channel:
+        τ = 1 − opacity·(1 − transmittance) (README, "Translucent casters"); an opaque shape
+        has τ = (0, 0, 0).
+
+        >>> ShapeSpec("pane", "rectangle", transmittance=(1.0, 0.5, 0.0), opacity=0.5).tau
+        (1.0, 0.75, 0.5)
+        """
+        if self.transmittance is None:
+            return (0.0, 0.0, 0.0)
+        return tuple(1.0 - self.opacity * (1.0 - t) for t in self.transmittance)
 
 
 @dataclass(frozen=True)
@@ -223,6 +242,10 @@ class SceneSpec:
     sdf: tuple = ()              # [[sdf]] tables (shadowlab.scene.sdf_spec): SDF-only objects, no Mitsuba twin
     path: CameraPath | None = None   # [camera.path]: the camera moves; None: one static camera
     frame: int | None = None         # the frame this spec is at (None without a path); camera is that frame's
+    #: how the ground truth spends its shadow rays across lights (reference/truth.py): "per_light",
+    #: every light's visibility to the target error; "contribution", in proportion to its share of
+    #: each pixel's unshadowed light
+    truth_allocation: str = "per_light"
 
     @property
     def frames(self) -> int:
@@ -265,6 +288,8 @@ class SceneSpec:
         for k in ("near", "far"):  # absent unless set: scenes without them hash as before the keys existed
             if d["camera"][k] is None:
                 d["camera"].pop(k)
+        if d["truth_allocation"] == "per_light":  # absent unless set: scenes hash as before the key existed
+            d.pop("truth_allocation")
         if not d["sdf"]:  # absent unless used: scenes without [[sdf]] hash as before the key existed
             d.pop("sdf")
         for l in d["lights"]:  # absent unless used: lights without a range hash as before the key existed
@@ -288,6 +313,10 @@ class SceneSpec:
                 p = Path(tex)
                 s["alpha_texture_sha256"] = hashlib.sha256(p.read_bytes()).hexdigest() if p.exists() else None
                 s["alpha_cutoff"] = cutoff
+            # translucency: likewise absent unless used
+            tr, op = s.pop("transmittance"), s.pop("opacity")
+            if tr is not None:
+                s["transmittance"], s["opacity"] = tr, op
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()
 
     def light(self, name: str) -> LightSpec:
@@ -314,7 +343,8 @@ def _cross(a, b):
 SHADOW_MAP_MAX = 16384
 #: characters of a scene name: it names the scene's directory in the reference store
 SCENE_NAME_RE = r"[A-Za-z0-9_.-]+"
-TOP_KEYS = ("name", "description", "camera", "lights", "shapes", "sdf")
+TOP_KEYS = ("name", "description", "camera", "lights", "shapes", "sdf", "truth_allocation")
+TRUTH_ALLOCATIONS = ("per_light", "contribution")
 CAMERA_KEYS = ("position", "target", "up", "fov", "resolution", "near", "far", "path")
 PATH_KEYS = ("frames", "interpolation", "keys", "cameras")
 PATH_KEY_KEYS = ("frame", "position", "target", "fov", "up")
@@ -332,7 +362,7 @@ LIGHT_KEYS = {
 _LIGHT_SIZE_KEY = {"rect": "size", "disk": "radius", "sphere": "radius", "spot": "radius", "point": "radius",
                    "directional": "angular_diameter"}
 _SHAPE_COMMON = ("name", "type", "albedo", "translate", "rotate", "scale", "two_sided", "alpha_texture",
-                 "alpha_cutoff")
+                 "alpha_cutoff", "transmittance", "opacity")
 #: the keys each shape type takes; a key of another type (``radius`` on a cube) is refused
 SHAPE_KEYS = {
     "rectangle": _SHAPE_COMMON, "disk": _SHAPE_COMMON, "cube": _SHAPE_COMMON,
@@ -578,6 +608,19 @@ def _shape(path: str, i: int, st, names: set, snames: set, base: Path) -> ShapeS
     elif r.has("alpha_cutoff"):
         r.fail("alpha_cutoff", "no alpha_cutoff without alpha_texture (the image whose alpha it tests)",
                st["alpha_cutoff"])
+    if r.has("transmittance"):
+        tr = r.vec("transmittance")
+        if any(not 0.0 <= t <= 1.0 for t in tr):
+            r.fail("transmittance", "three numbers in [0, 1] (the RGB fraction of light a translucent caster "
+                   "lets through; 0 blocks, 1 lets all through)", list(tr))
+        if "alpha_texture" in kw:
+            r.fail("transmittance", "a translucent shape of a supported type: an alpha-tested shape "
+                   "(alpha_texture) cannot also be translucent; drop one of the two keys", list(tr))
+        kw["transmittance"] = tr
+        kw["opacity"] = r.num("opacity", default=1.0, lo=0.0, hi=1.0)
+    elif r.has("opacity"):
+        r.fail("opacity", "no opacity without transmittance (the colour the opaque share filters with)",
+               st["opacity"])
     return ShapeSpec(**kw)
 
 
@@ -612,12 +655,17 @@ def parse(data: dict, path: str = "<scene>") -> SceneSpec:
     if "sdf" in data:
         sdf = parse_sdf_tables(data["sdf"], path, snames | names)
         meshy = [s.name for s in shapes if s.type in ("ply", "obj") or s.alpha_tested]
+        see_through = [s.name for s in shapes if s.translucent]
+        if see_through:
+            top.fail("sdf", "no [[sdf]] objects in a scene with translucent shapes (the SDF truth traces cones, "
+                     f"without transmission): {', '.join(see_through)}", None)
         if meshy:
             top.fail("sdf", "no [[sdf]] objects in a scene with meshes or alpha-tested shapes (they have no "
                      f"signed distance field): {', '.join(meshy)}", None)
     cam_path = _camera_path(path, data["camera"], camera)
     spec = SceneSpec(name=name, camera=camera, lights=tuple(lights), shapes=tuple(shapes),
-                     description=top.str("description", default=""), source=str(path), sdf=sdf, path=cam_path)
+                     description=top.str("description", default=""), source=str(path), sdf=sdf, path=cam_path,
+                     truth_allocation=top.str("truth_allocation", default="per_light", choices=TRUTH_ALLOCATIONS))
     if cam_path is not None:  # a path scene is at frame 0 until moved (at_frame)
         spec = replace(spec, frame=-1).at_frame(0)
     return spec

@@ -93,11 +93,14 @@ class ShadowResult:
     """What a technique returns. ``visibility[light]``: flat per-G-buffer-point Dr.Jit Float in
     [0, 1] (differentiable where the technique is); ``aovs``: ``<light>.<aov>`` -> (H, W[, C])
     numpy image for debugging (penumbra width, fallback mask, ...); ``stats``: JSON-able numbers,
-    laid out by :meth:`Technique.render`."""
+    laid out by :meth:`Technique.render`. ``colour[light]``: flat Dr.Jit Color3f RGB visibility,
+    only for lights whose shadows the technique colours (translucent casters); ``visibility`` is
+    then its channel mean."""
 
     visibility: dict
     aovs: dict = field(default_factory=dict)
     stats: dict = field(default_factory=dict)
+    colour: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -122,13 +125,16 @@ class LightResult:
     ``active``: optional Bool mask: outside it the base sets visibility 1 and every AOV 0;
     ``stats``: JSON-able per-light numbers (a :class:`Pooled` value is a mean over points);
     ``maps``: one JSON-able dict per shadow map / tile of the light (a light with cascades or
-    tiles has several; each dict holds that map's own numbers, e.g. resolution, near, far)."""
+    tiles has several; each dict holds that map's own numbers, e.g. resolution, near, far);
+    ``colour``: optional flat Dr.Jit Color3f RGB visibility (coloured shadows of translucent
+    casters), whose channel mean is ``visibility``."""
 
     visibility: object
     aovs: dict = field(default_factory=dict)
     active: object = None
     stats: dict = field(default_factory=dict)
     maps: list = field(default_factory=list)
+    colour: object = None
 
 
 class RenderContext:
@@ -282,17 +288,20 @@ class Technique:
         ctx = RenderContext(self, values)
         self.prepare(frame, values, ctx)
         gb = frame.gbuffer
-        vis, aovs, lights, pools = {}, {}, {}, {}
+        vis, aovs, lights, pools, colour = {}, {}, {}, {}, {}
         for light in frame.lights:
             r = self.render_light(frame, light, values, ctx)
-            v = r.visibility
+            v, c = r.visibility, r.colour
             extra = {k: dr.detach(a) for k, a in r.aovs.items()}
             if r.active is not None:
                 v = dr.select(r.active, v, 1.0)
+                c = dr.select(r.active, c, 1.0) if c is not None else None
                 extra = {k: dr.select(r.active, a, 0.0) for k, a in extra.items()}
-            dr.eval(v, *extra.values(), *([r.active] if r.active is not None else []))
-            r.visibility, r.aovs = v, extra
+            dr.eval(v, *extra.values(), *([r.active] if r.active is not None else []), *([c] if c is not None else []))
+            r.visibility, r.aovs, r.colour = v, extra, c
             vis[light.name] = v
+            if c is not None:
+                colour[light.name] = c
             for k, a in extra.items():
                 aovs[f"{light.name}.{k}"] = gb.to_image(a)
             st = {**r.stats, **self.light_stats(frame, light, values, ctx, r)}
@@ -312,7 +321,7 @@ class Technique:
         for k, (tot, cnt) in pools.items():
             stats[k]["all"] = tot / cnt if cnt else 0.0
         stats["lights"] = lights
-        return ShadowResult(visibility=vis, aovs=aovs, stats=stats)
+        return ShadowResult(visibility=vis, aovs=aovs, stats=stats, colour=colour)
 
 
 

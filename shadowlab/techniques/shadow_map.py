@@ -175,11 +175,13 @@ def map_settings(frame, light_name: str, values: dict) -> tuple[int, int]:
     return res, bits
 
 
-def view_for(frame, light_name: str, values: dict):
-    """The (cached) LightView a shadow-map technique samples for ``light_name``."""
+def view_for(frame, light_name: str, values: dict, translucent: bool = False):
+    """The (cached) LightView a shadow-map technique samples for ``light_name``; ``translucent``:
+    the opaque casters' depth plus the translucent casters' colour and depth (in a scene with
+    translucent shapes; the plain view elsewhere)."""
     res, bits = map_settings(frame, light_name, values)
     return frame.light_view(light_name, res=res, bits=bits, backface=bool(values.get("backface", False)),
-                            layers=map_layers(values))
+                            layers=map_layers(values), translucent=translucent)
 
 
 def map_layers(values: dict) -> int:

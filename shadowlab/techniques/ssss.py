@@ -56,11 +56,25 @@ Per frame:
    depth rejection (the nearest half pixel where every one is rejected).
 6. **Lighting**: light L reads its layer's blurred value once per pixel inside its lit volume;
    outside it, where the range window is 0, its visibility is 1 (the light does not shade there).
+7. **Translucent casters** [Tamás 2015, §6.5, §7] (a scene with translucent shapes): the hard
+   shadows and the exponential values come from the light views of the *opaque* casters, and a
+   light's tint is the colour of the translucent casters in front of the receiver
+   (:meth:`~shadowlab.render.lightview.LightView.tint`: their τ product where the receiver lies
+   behind the nearest of them, by the same biased depth test as the hard shadows', against the
+   map of the nearest translucent surfaces, so a pane does not tint itself). The penumbra size still comes from every caster (the plain
+   views), so a pane's shadow edge is blurred too. Per layer the tint (the members' product per
+   channel) and its coverage (1 where tinted) are the layered translucency map: one RGBA8 word
+   per layer (:func:`pack_rgba8`, R in the high byte; floor(255·v), as the source's
+   ``float_to_r8``), unpacked with the source's ``uint_to_rgba8`` and blurred channel by channel
+   like the hard shadows. The light's RGB visibility is the blurred hard value times the blurred
+   tint (``ShadowResult.colour``); its scalar visibility is that product's channel mean.
 
 AOVs per light: ``layer`` (its layer index), ``penumbra_size`` (its layer's stored size at its
-points, world units), ``filter_px`` (F, pixels), ``hard`` (its hard shadow). Stats:
-``layers_used``, ``max_degree``, ``layer_conflicts``, ``layer_edges``, ``words_per_pixel`` (32-bit
-words of the layered shadow map), and per light ``layer``.
+points, world units), ``filter_px`` (F, pixels), ``hard`` (its hard shadow), and with translucent
+casters ``tinted`` (1 where its layer's unblurred tint has coverage). Stats: ``layers_used``,
+``max_degree``, ``layer_conflicts``, ``layer_edges``, ``words_per_pixel`` (32-bit words of the
+layered shadow map), ``translucency_words_per_pixel`` (of the layered translucency map: one per
+layer, 0 without translucent casters), and per light ``layer``.
 """
 
 from __future__ import annotations
@@ -70,7 +84,6 @@ import math
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-from scipy.ndimage import minimum_filter1d
 
 from ..errors import InputError
 from ..scene.light_layers import colour, lit_volume
@@ -320,6 +333,56 @@ def blur_half(screen, v, sigma, kernel: int, thr, plane: bool):
     return dr.select(screen.valid & (sigma > 0), up, v)
 
 
+def min_filter_map(view, r):
+    """The min filter of ``view``'s linear depth (module docstring, step 3) as a flat ``mi.Float``
+    of F × Nl × Nl low-resolution texels (face, row, column), Nl = ⌈N/B⌉, B =
+    :data:`MIN_FILTER_DOWNSAMPLE`: the min of each B×B block (+inf for texels that hit nothing and
+    those past the map's edge), then a min over ±``r`` low-resolution texels along x and then along
+    y, clamped at the face's borders (scipy ``minimum_filter1d``'s ``mode="nearest"``). Three Dr.Jit
+    passes over all low-resolution texels of all faces; N, Nl and r enter them as opaque values,
+    so a new radius or map size reuses the compiled kernels."""
+    B = MIN_FILTER_DOWNSAMPLE
+    F, N = view.nfaces, view.res
+    Nl = -(-N // B)
+    if "z_min_filter" not in view._dr:            # z where the texel hit something, else +inf
+        hit = mi.Bool(np.ascontiguousarray(view.hit, bool).ravel())
+        zi = dr.select(hit, view.dr("z"), dr.inf)
+        dr.eval(zi)
+        view._dr["z_min_filter"] = zi
+    z = view._dr["z_min_filter"]
+    n_o, nl_o = dr.opaque(mi.Int32, N), dr.opaque(mi.Int32, Nl)
+    r_o = dr.opaque(mi.Int32, min(max(int(r), 0), Nl))    # r ≥ Nl − 1 already spans a whole row
+    idx = dr.arange(mi.Int32, F * Nl * Nl)
+    # block min, B×B taps unrolled
+    lx = idx % nl_o
+    t = idx // nl_o
+    ly = t % nl_o
+    face = t // nl_o
+    low = dr.full(mi.Float, dr.inf, F * Nl * Nl)
+    for by in range(B):
+        y = ly * B + by
+        for bx in range(B):
+            x = lx * B + bx
+            ok = (x < n_o) & (y < n_o)
+            src = (face * n_o + dr.minimum(y, n_o - 1)) * n_o + dr.minimum(x, n_o - 1)
+            low = dr.minimum(low, dr.select(ok, dr.gather(mi.Float, z, mi.UInt32(src)), dr.inf))
+    dr.eval(low)
+
+    def run(src, start, lo, hi, step):   # min of src[start + j·step], j = lo … hi: one symbolic loop
+        def body(j, m):
+            return j + 1, dr.minimum(m, dr.gather(mi.Float, src, mi.UInt32(start + dr.minimum(j, hi) * step)))
+        return dr.while_loop((lo + 1, dr.gather(mi.Float, src, mi.UInt32(start + lo * step))),
+                             lambda j, m: j <= hi, body, labels=("j", "m"), label="ssss_min_filter")[1]
+
+    # along x (columns of a row), then along y (rows of a column), clamped at the borders
+    top = nl_o - 1
+    low = run(low, idx - lx, dr.maximum(lx - r_o, 0), dr.minimum(lx + r_o, top), 1)
+    dr.eval(low)
+    low = run(low, idx - ly * nl_o, dr.maximum(ly - r_o, 0), dr.minimum(ly + r_o, top), nl_o)
+    dr.eval(low)
+    return low
+
+
 # ----------------------------------------------------------------------------------------------
 # the technique
 
@@ -363,18 +426,12 @@ class SSSS(ShadowMapTechnique):
     def _min_filtered(self, view, rec, w_search, act):
         """The min filter's nearest depth at each receiver's texel (module docstring, step 3)."""
         B = MIN_FILTER_DOWNSAMPLE
-        F, N = view.nfaces, view.res
-        Nl = -(-N // B)
-        z = np.full((F, Nl * B, Nl * B), np.inf, np.float32)
-        z[:, :N, :N] = np.where(view.hit, view.z, np.inf)
-        low = z.reshape(F, Nl, B, Nl, B).min(axis=(2, 4))
-        ws = np.asarray(dr.select(act, w_search, 0.0).numpy())
-        r = int(math.ceil(float(ws.max()) / 2.0 / B)) if ws.size else 0
-        if r > 0:
-            low = minimum_filter1d(low, 2 * r + 1, axis=1, mode="nearest")
-            low = minimum_filter1d(low, 2 * r + 1, axis=2, mode="nearest")
-        low = np.where(np.isfinite(low), low, np.float32(3.0e38)).astype(np.float32)
-        tex = mi.Float(low.ravel())
+        Nl = -(-view.res // B)
+        ws = dr.select(act, w_search, 0.0)
+        wmax = float(dr.max(ws)[0]) if dr.width(ws) else 0.0          # one scalar read-back
+        r = int(math.ceil(wmax / 2.0 / B))
+        low = min_filter_map(view, r)
+        tex = dr.select(dr.isfinite(low), low, 3.0e38)
         ix = dr.clip(mi.Int32(dr.floor(rec["u"])) // B, 0, Nl - 1)
         iy = dr.clip(mi.Int32(dr.floor(rec["v"])) // B, 0, Nl - 1)
         return dr.gather(mi.Float, tex, (mi.UInt32(rec["face"]) * Nl + mi.UInt32(iy)) * Nl + mi.UInt32(ix))
@@ -391,34 +448,51 @@ class SSSS(ShadowMapTechnique):
         gb = frame.gbuffer
         scr = frame.screen
         n_layers = max(lay.layer.values()) + 1
+        coloured = frame.scene.has_translucent
         per = {}
         for light in lights:
             view = view_for(frame, light.name, values)
+            opaque = view_for(frame, light.name, values, translucent=True)  # ``view`` itself without translucency
             rec = receiver(frame, view, ctx.bias)
-            hard = dr.select(rec["active"], depth_test(view, rec, texel_index(rec["u"]), texel_index(rec["v"]),
+            hard = dr.select(rec["active"], depth_test(opaque, rec, texel_index(rec["u"]), texel_index(rec["v"]),
                                                        ctx.bias), 1.0)
             size = self.penumbra_size(frame, light, view, rec, values, ctx)
             member = gb.valid & in_volume(light, gb.p)
             if values["layer_packing"] == "exponential":
-                zocc = view.fetch("z", rec["face"], texel_index(rec["u"]), texel_index(rec["v"]))
+                zocc = opaque.fetch("z", rec["face"], texel_index(rec["u"]), texel_index(rec["v"]))
                 zrec = rec["z"] - rec["zbias"]
                 e = dr.clip(dr.exp(-dr.opaque(mi.Float, float(values["exp_k"])) * (zrec - zocc)), 0.0, 1.0)
                 val = dr.select(hard > 0.5, 1.0, e)
             else:
                 val = hard
-            dr.eval(hard, size, member, val)
-            per[light.name] = dict(view=view, rec_active=rec["active"], hard=hard, size=size, member=member, val=val)
-        # per layer: combine the members (product of values, largest size)
-        lv, ls = [], []
+            tint = None
+            if coloured:  # behind the nearest translucent caster, by the hard shadows' biased test
+                behind = depth_test(opaque.translucent, rec, texel_index(rec["u"]), texel_index(rec["v"]), ctx.bias)
+                tint = dr.select(rec["active"] & (behind < 0.5), opaque.tint(rec), mi.Color3f(1.0))
+            dr.eval(hard, size, member, val, *([tint] if coloured else []))
+            per[light.name] = dict(view=view, rec_active=rec["active"], hard=hard, size=size, member=member, val=val,
+                                   tint=tint)
+        # per layer: combine the members (product of values and of tints, largest size)
+        lv, ls, lt = [], [], []
         for L in range(n_layers):
             v, s = dr.full(mi.Float, 1.0, gb.size), dr.zeros(mi.Float, gb.size)
+            t = mi.Color3f(1.0) if coloured else None
             for name in lay.members(L):
                 q = per[name]
                 v = v * dr.select(q["member"], q["val"], 1.0)
                 s = dr.maximum(s, dr.select(q["member"], q["size"], 0.0))
-            dr.eval(v, s)
+                if coloured:
+                    t = t * dr.select(q["member"], q["tint"], mi.Color3f(1.0))
+            dr.eval(v, s, *([t] if coloured else []))
             lv.append(v)
             ls.append(store_penumbra(s, int(values["penumbra_bits"])))
+            lt.append(t)
+        if coloured:  # the layered translucency map: one RGBA8 word per layer (RGB tint, A coverage)
+            tw = [pack_rgba8([t.x, t.y, t.z, dr.select((t.x < 1.0) | (t.y < 1.0) | (t.z < 1.0), 1.0, 0.0)])[0]
+                  for t in lt]
+            dr.eval(*tw)
+            lt = [unpack_rgba8([w], 4) for w in tw]
+            dr.eval(*[c for t in lt for c in t])
         if values["layer_packing"] == "binary":
             words = pack_binary(lv)
             dr.eval(*words)
@@ -434,27 +508,37 @@ class SSSS(ShadowMapTechnique):
         nz = dr.maximum(dr.dot(scr.normal, -fwd), NZ_FLOOR)
         thr = dr.opaque(mi.Float, float(values["depth_threshold"]))
         kernel = int(values["kernel"])
-        blurred, fpx = [], []
+        blurred, fpx, tints = [], [], []
+        fn = blur_half if values["half_resolution"] else blur_full
         for L in range(n_layers):
             F = dr.select(scr.valid, ls[L] * dr.sqrt(nz) * P / dr.maximum(scr.depth, 1e-12), 0.0)
             sigma = F * (1.0 / math.sqrt(12.0))
             dr.eval(F, sigma)
-            fn = blur_half if values["half_resolution"] else blur_full
             b = fn(scr, lv[L], sigma, kernel, thr, bool(values["depth_plane"]))
             dr.eval(b)
             blurred.append(b)
             fpx.append(F)
+            if coloured:
+                tb = mi.Color3f(*[fn(scr, c, sigma, kernel, thr, bool(values["depth_plane"])) for c in lt[L][:3]])
+                dr.eval(tb)
+                tints.append(tb)
         ctx.layering = lay
         ctx.words = len(words)
+        ctx.twords = n_layers if coloured else 0
         ctx.out = {}
         for light in lights:
             q, L = per[light.name], lay.layer[light.name]
             vis = dr.select(q["member"], blurred[L], 1.0)
-            ctx.out[light.name] = LightResult(
-                vis, aovs={"layer": dr.full(mi.Float, float(L), gb.size),
-                           "penumbra_size": dr.select(q["member"], ls[L], 0.0),
-                           "filter_px": dr.select(q["member"], fpx[L], 0.0), "hard": q["hard"]},
-                active=gb.valid, stats={**map_stats(q["view"]), "layer": L}, maps=[map_entry(q["view"])])
+            aovs = {"layer": dr.full(mi.Float, float(L), gb.size),
+                    "penumbra_size": dr.select(q["member"], ls[L], 0.0),
+                    "filter_px": dr.select(q["member"], fpx[L], 0.0), "hard": q["hard"]}
+            rgb = None
+            if coloured:
+                rgb = dr.select(q["member"], blurred[L] * tints[L], mi.Color3f(1.0))
+                vis = (rgb.x + rgb.y + rgb.z) * (1.0 / 3.0)
+                aovs["tinted"] = dr.select(q["member"], lt[L][3], 0.0)
+            ctx.out[light.name] = LightResult(vis, aovs=aovs, active=gb.valid, colour=rgb,
+                                              stats={**map_stats(q["view"]), "layer": L}, maps=[map_entry(q["view"])])
 
     def render_light(self, frame, light, values, ctx):
         return ctx.out[light.name]
@@ -463,8 +547,8 @@ class SSSS(ShadowMapTechnique):
         lay = ctx.layering
         return {**super().summarise(frame, values, ctx, lights), "layers_used": lay.layers_used,
                 "max_degree": lay.max_degree, "layer_conflicts": lay.conflicts, "layer_edges": lay.edges,
-                "words_per_pixel": ctx.words, "kernel": int(values["kernel"]), "penumbra": values["penumbra"],
-                "layer_packing": values["layer_packing"]}
+                "words_per_pixel": ctx.words, "translucency_words_per_pixel": ctx.twords,
+                "kernel": int(values["kernel"]), "penumbra": values["penumbra"], "layer_packing": values["layer_packing"]}
 
 
 __doc__ += "\n\nParameters of ``ssss`` (generated from the declaration):\n\n" + param_table_markdown(SSSS)
