@@ -179,6 +179,9 @@ def _reference_done(path, meta):
     per = (meta.get("stats") or {}).get("per_light") or {}
     if len(per) > 1:
         typer.echo("  per light: " + ", ".join(f"{n} {c['time_s']:.2f} s ({c['shadow_rays']:,} rays)" for n, c in per.items()))
+    if (meta.get("stats") or {}).get("allocation") == "contribution":
+        typer.echo("  allocation: contribution (each light's target error by its share of a pixel's light; the "
+                   "shaded image keeps the target relative to the pixel's light)")
     tm = meta.get("target_missed") or {}
     if tm.get("pixels"):
         per = ", ".join(f"{n} {v['pixels']}" for n, v in tm["lights"].items())

@@ -20,12 +20,14 @@ Every figure from one run, as ratios beside the source's (:data:`PAPER_KERNEL`,
   and ``ssss`` optimised, kernel 11, on ``many_lights`` keeping its first n lights (the scene's
   order: the sun, then the clusters, then the lone and edge lights). Ratios to ``pcss`` with one
   light, the source's to its 10.2 ms;
-  ``ssss`` with the blocker search, kernel 11, beside them (its cost has no numpy pass);
+  ``ssss`` with the blocker search, kernel 11, beside them;
 * **past the document**: 32 / 64 / 128 generated lights
   (:func:`shadowlab.scene.generate.many_lights_spec`, seed 0; shadow maps 256²), the same three.
 
-``ssss``'s min filter is a numpy pass over each light's whole map at every render (not a Dr.Jit
-kernel), so on the CPU its variants cost what numpy costs; the Markdown says so beside the tables.
+``ssss``'s min filter is three Dr.Jit passes over each light's low-resolution map at every render
+(their cost grows with the maps and the search radius, not the screen), and ``many_lights``'s two
+coloured panes make ``ssss`` blur a translucency map per layer too; the Markdown says so beside the
+tables.
 """
 
 from __future__ import annotations
@@ -277,10 +279,11 @@ def _lights_md(l: dict, g: dict) -> list:
         lines += ["", f"Cost per added light ({ns[0]} → {ns[-1]}), in units of one-light pcss: pcss {sl['pcss']:.3f}, "
                       f"ssss optimised {sl['ssss_optimised']:.3f}, ssss blocker search {sl['ssss_blocker_search']:.3f} "
                       f"(source: pcss {psl[0]:.3f}, ssss optimised {psl[1]:.3f})."]
-    lines += ["", "ssss's min filter is a numpy pass (scipy's `minimum_filter1d`) over each light's whole map at every "
-                  "render, not a Dr.Jit kernel: here its cost is the CPU's numpy time and grows with the maps, not "
-                  "the screen, which is why the min-filter and optimised rows cost more than the blocker search on "
-                  "this machine where the source found them cheaper."]
+    lines += ["", "ssss's min filter is three Dr.Jit passes over each light's low-resolution map (a block minimum, then "
+                  "minima along rows and columns over the search radius) at every render: its cost grows with the "
+                  "maps and the radius, not the screen. `many_lights` has two coloured translucent panes, so every "
+                  "ssss row also packs and blurs a translucency map per layer (three more blurred channels); the "
+                  "generated scenes have panes too."]
     return lines
 
 
