@@ -304,3 +304,17 @@ def test_other_techniques_see_translucent_casters_as_opaque(panes):
     assert r.colour == {}
     x, floor = _floor(frame)
     assert (r.visibility["panel"].numpy()[floor & (x < -1.0)] == 0.0).all()
+
+
+def test_only_lights_whose_shadows_have_colour_store_rgb():
+    """The committed many_lights reference: the lights that shine through a pane have C.* channels,
+    the others (their samples never crossed a coloured surface) only V."""
+    from shadowlab.reference import store
+    truth, _ = store.load(load("many_lights").spec)
+    coloured = {n for n, lt in truth.lights.items() if lt.V_rgb is not None}
+    assert {"c1_spot", "c2_a", "sun"} <= coloured
+    assert {"lone_bl", "lone_br", "right_spot"}.isdisjoint(coloured)
+    for n in coloured:
+        lt = truth.lights[n]
+        np.testing.assert_allclose(lt.V, lt.V_rgb.mean(-1), atol=1e-6)
+        assert not np.array_equal(lt.V_rgb[..., 0], lt.V_rgb[..., 2])

@@ -42,6 +42,13 @@ point's own stream, its rank among the valid points for the first rounds and amo
 that sample on after them for all later ones, whatever lane runs the round; a fixed seed gives
 the same bits.
 
+Translucent casters (a scene with ``transmittance`` shapes): a shadow ray's visibility is the RGB
+straight-line transmittance of its segment (``shading.transmitted``), so a light of such a scene
+gets V_c = Σ f·τ_c / Σ f per channel with its standard error (``LightTruth.V_rgb``; V is their
+mean), kept by :func:`render_truth` for the lights whose shadows have colour (channels that
+differ somewhere), and a point's samples are unanimous only when all were fully lit or all fully
+blocked.
+
 Allocation across lights (the scene's ``truth_allocation``). ``per_light`` (the default): every
 light's V to ``target_se`` at every pixel, so a scene's cost grows with its lights however little
 each adds to a pixel. ``contribution``: light L's target at a point is
@@ -597,6 +604,8 @@ def render_truth(frame: FrameContext, *, k: int = 8, target_se: float = 0.005, m
                         points=flatU[l.name].sum(-1) > 0 if flatU else None)
         dr.sync_thread()
         cost[l.name] = {"time_s": time.perf_counter() - t_l, "shadow_rays": int(lt.rays)}
+        if lt.V_rgb is not None and all(np.array_equal(lt.V_rgb[..., 0], lt.V_rgb[..., c]) for c in (1, 2)):
+            lt.V_rgb = lt.V_rgb_se = None  # no sample crossed a coloured surface: its shadows have no colour
         lights[l.name] = lt
         U[l.name] = gb.to_image(vec_numpy(frame.unshadowed[l.name]))
         V, V_se = (lt.V_rgb, lt.V_rgb_se) if lt.V_rgb is not None else (lt.V[..., None], lt.V_se[..., None])
