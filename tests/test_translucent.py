@@ -166,7 +166,7 @@ def test_tint_colours_receivers_behind_the_nearest_translucent_caster_only(panes
     for dt, behind in ((td + 1e-4, True), (td - 1e-4, False)):
         rec = {"u": mi.Float((i + 0.5).astype(np.float32)), "v": mi.Float((j + 0.5).astype(np.float32)),
                "face": mi.UInt32(np.zeros(len(i), np.uint32)), "dt": mi.Float(dt.astype(np.float32))}
-        np.testing.assert_array_equal(vec_numpy(lv.tint(rec)), rgb)
+        np.testing.assert_array_equal(vec_numpy(lv.tint(rec["face"], mi.Int32(i), mi.Int32(j))), rgb)
         no_bias = opaque_bias({k: 0.0 for k in ("depth_bias", "slope_scaled_depth_bias", "depth_bias_clamp",
                                                  "constant_bias", "slope_bias", "max_slope_bias", "normal_offset")})
         lit = depth_test(lv.translucent, rec, mi.Int32(i), mi.Int32(j), no_bias)

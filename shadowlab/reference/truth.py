@@ -468,49 +468,47 @@ def _rgb_images(gb, sums, rounds, active, n_act):
     s2 = gb.ss * gb.ss
     if not n_act:
         return np.ones((gb.height, gb.width, 3), np.float32), np.zeros((gb.height, gb.width, 3), np.float32)
-    R = dr.maximum(rounds, 1.0)
     img = gb.to_image if s2 > 1 else (lambda x: np.asarray(x, np.float32).reshape(gb.height, gb.width))
-
-    def full(x, outside):
-        out = dr.full(mi.Float64, outside, gb.size)
-        dr.scatter(out, x, active)
-        return mi.Float32(out)
-
     mean, se = [], []
     for c in range(3):
-        s, s_2 = sums[5 + 2 * c], sums[6 + 2 * c]
-        m = s / R
-        var = dr.maximum(s_2 / R - m * m, 0.0) * R / dr.maximum(R - 1.0, 1.0)
-        v = dr.select(rounds > 1, var / R, 0.0)
-        a, b = full(m, 1.0), full(v, 0.0)
+        m, v = _mean_var(sums[5 + 2 * c], sums[6 + 2 * c], rounds)
+        a, b = _on_points(m, 1.0, gb.size, active), _on_points(v, 0.0, gb.size, active)
         dr.eval(a, b)
         mean.append(img(a.numpy()))
         se.append(np.sqrt(img(b.numpy()) / s2))
     return np.stack(mean, -1), np.stack(se, -1).astype(np.float32)
 
 
+def _mean_var(s, s2, rounds):
+    """A point's mean over its rounds and the variance of that mean (0 with one round), from the
+    float64 sums of a value and of its square."""
+    R = dr.maximum(rounds, 1.0)
+    m = s / R
+    var = dr.maximum(s2 / R - m * m, 0.0) * R / dr.maximum(R - 1.0, 1.0)
+    return m, dr.select(rounds > 1, var / R, 0.0)
+
+
+def _on_points(x, outside, size, active):
+    """Every G-buffer point: ``x`` at the sampled ones (``active``), ``outside`` elsewhere, as float32."""
+    out = dr.full(mi.Float64, outside, size)
+    dr.scatter(out, x, active)
+    return mi.Float32(out)
+
+
 def _point_values(size, sums, rounds, active, n_act, kk, delta, flat=False):
     """V, se(V)², A, se(A)², samples and bound at every G-buffer point (float32, on the device);
     ``flat``: se(V) and se(A) instead of their squares, and all six in one array, one after the other."""
     s_v, s_v2, s_a, s_a2, s_vis = sums[:5]
-    R = dr.maximum(rounds, 1.0)
-
-    def _se(s, s2):
-        m = s / R
-        var = dr.maximum(s2 / R - m * m, 0.0) * R / dr.maximum(R - 1.0, 1.0)
-        return dr.select(rounds > 1, dr.sqrt(var / R), 0.0)
-
+    (m_v, var_v), (m_a, var_a) = _mean_var(s_v, s_v2, rounds), _mean_var(s_a, s_a2, rounds)
+    se_v, se_a = dr.sqrt(var_v), dr.sqrt(var_a)
     n = rounds * kk
     unanimous = (s_vis == 0) | (s_vis == n)
     bound = dr.select(unanimous, 3.0 / dr.maximum(n, 1.0), 0.0) if not delta else dr.zeros(mi.Float64, n_act)
-    se_v, se_a = _se(s_v, s_v2), _se(s_a, s_a2)
 
-    def full(x, outside):  # every G-buffer point: ``x`` at the valid ones, as float32
-        out = dr.full(mi.Float64, outside, size)
-        dr.scatter(out, x, active)
-        return mi.Float32(out)
+    def full(x, outside):
+        return _on_points(x, outside, size, active)
 
-    out = [full(s_v / R, 1.0), full(se_v * se_v, 0.0), full(s_a / R, 1.0), full(se_a * se_a, 0.0), full(n, 0.0),
+    out = [full(m_v, 1.0), full(se_v * se_v, 0.0), full(m_a, 1.0), full(se_a * se_a, 0.0), full(n, 0.0),
            full(bound, 0.0)]
     if not flat:
         dr.eval(out)

@@ -480,20 +480,17 @@ class LightView:
         idx = (mi.UInt32(face) + (layer - 1 if layer else 0) * self.nfaces) * (N * N) + mi.UInt32(iy * N + ix)
         return dr.gather(mi.Float, self.dr(name), idx)
 
-    def tint(self, rec):
-        """The colour ``trans_rgb`` of each receiver's texel (mi.Color3f; 1 in a view without
-        translucency). Whether the receiver lies behind the translucent caster is the biased depth
-        test against :attr:`translucent` (``shadow_map.depth_test``), which the caller makes."""
+    def tint(self, face, ix, iy):
+        """The colour ``trans_rgb`` of texel (ix, iy) of ``face`` (mi.Color3f, clamped like
+        :meth:`fetch`; 1 in a view without translucency). Whether a receiver lies behind the
+        translucent caster is the biased depth test against :attr:`translucent`
+        (``shadow_map.depth_test``), which the caller makes."""
         if self.trans_rgb is None:
             return mi.Color3f(1.0)
-        for c in range(3):
+        for c in range(3):  # one flat channel each, cached where :meth:`dr` looks first
             if f"trans_rgb{c}" not in self._dr:
                 self._dr[f"trans_rgb{c}"] = mi.Float(np.ascontiguousarray(self.trans_rgb[..., c], np.float32).ravel())
-        N = self.res
-        ix = dr.clip(mi.Int32(dr.floor(rec["u"])), 0, N - 1)
-        iy = dr.clip(mi.Int32(dr.floor(rec["v"])), 0, N - 1)
-        idx = mi.UInt32(rec["face"]) * (N * N) + mi.UInt32(iy * N + ix)
-        return mi.Color3f(*[dr.gather(mi.Float, self._dr[f"trans_rgb{c}"], idx) for c in range(3)])
+        return mi.Color3f(*[self.fetch(f"trans_rgb{c}", face, ix, iy) for c in range(3)])
 
     def lookup(self, p):
         """Project world points ``p`` (mi.Point3f) into the light view (Dr.Jit).
@@ -580,8 +577,9 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     ``layers`` > 1 also keeps the next ``layers`` − 1 surfaces along each texel's ray (same
     skipping rules), so that a rasterizer's bias, added to every fragment before the depth test,
     can be emulated (:func:`shadowlab.techniques.shadow_map.stored_depth`).
-    ``translucent`` (a scene with translucent shapes): the depth of the first opaque surface, and
-    the translucent casters' colour and depth in ``trans_rgb`` / ``trans_depth`` (module docstring).
+    ``translucent`` (a scene with translucent shapes): the depth of the first opaque surface, the
+    translucent casters' colour in ``trans_rgb`` and a view of the nearest of them in
+    ``translucent`` (module docstring).
     """
 
     proj = projection(light, scene, res, fit)

@@ -152,7 +152,8 @@ class Scene:
                 continue
             for i, n in enumerate(self.shape_names):
                 if n == spec.name or n.startswith(spec.name + "__"):
-                    out.append((dr.gather(type(shapes), shapes, i), mi.Color3f(*spec.tau)))
+                    # opaque: a scene's colours are data in memory, not literals compiled into the kernels
+                    out.append((dr.gather(type(shapes), shapes, i), dr.opaque(mi.Color3f, spec.tau)))
         return tuple(out)
 
     def mitsuba_notes(self) -> dict:

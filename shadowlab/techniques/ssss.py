@@ -467,8 +467,9 @@ class SSSS(ShadowMapTechnique):
                 val = hard
             tint = None
             if coloured:  # behind the nearest translucent caster, by the hard shadows' biased test
-                behind = depth_test(opaque.translucent, rec, texel_index(rec["u"]), texel_index(rec["v"]), ctx.bias)
-                tint = dr.select(rec["active"] & (behind < 0.5), opaque.tint(rec), mi.Color3f(1.0))
+                ix, iy = texel_index(rec["u"]), texel_index(rec["v"])
+                behind = depth_test(opaque.translucent, rec, ix, iy, ctx.bias) < 0.5
+                tint = dr.select(rec["active"] & behind, opaque.tint(rec["face"], ix, iy), mi.Color3f(1.0))
             dr.eval(hard, size, member, val, *([tint] if coloured else []))
             per[light.name] = dict(view=view, rec_active=rec["active"], hard=hard, size=size, member=member, val=val,
                                    tint=tint)
