@@ -37,7 +37,7 @@ from .report import build
 from .report.frames import build_frames
 from .report.images import cascade_colours, emitter_pixels, tile_colours
 from .report.lights import light_info
-from .report.outdir import claim_dir
+from .io.outdir import claim_dir
 from .scene import load
 from .scene.spec import builtin_dir
 from .techniques import base as tbase
@@ -445,7 +445,7 @@ def compare(scene: str, techniques: list[str], sets: list[str] | None = None, ou
 
     ``out`` is checked before anything is rendered: never inside the reference store, not an
     existing file, and an existing directory only if shadowlab made it or ``force``
-    (:func:`shadowlab.report.outdir.claim_dir`).
+    (:func:`shadowlab.io.outdir.claim_dir`).
 
     A missing reference is an error (exit 2) naming the ``shadowlab reference`` command that makes it,
     as is a stale or damaged one; ``render_missing=True`` renders and stores a missing one first.

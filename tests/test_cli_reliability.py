@@ -35,7 +35,7 @@ from shadowlab.gate.junit import junit_xml
 from shadowlab.gate.runner import run_gate_file
 from shadowlab.reference import store
 from shadowlab.reference.truth import LightTruth, Truth
-from shadowlab.report.outdir import MARKER
+from shadowlab.io.outdir import MARKER
 from shadowlab.scene import load_spec
 from conftest import CUDA
 

@@ -52,7 +52,7 @@ from ..io.jsonio import write_json_atomic
 from ..io.png import encode_png
 from ..reference import store
 from ..render.camera import Camera
-from ..report.outdir import claim_dir
+from ..io.outdir import claim_dir
 from ..scene import lights as lights_mod
 from ..scene.build import build, sensor_dict, shape_dicts
 from ..scene.spec import SceneSpec, load_spec, resolve

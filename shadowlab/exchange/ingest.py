@@ -36,7 +36,7 @@ from ..metrics import compare_shaded, compare_visibility, penumbra_mask
 from ..reference import store
 from ..report import build
 from ..report.lights import light_info
-from ..report.outdir import claim_dir
+from ..io.outdir import claim_dir
 from ..scene.spec import load_spec, resolve
 
 __all__ = ["ingest", "CHANNEL_AGAINST", "SHADED_AGAINST"]
@@ -151,7 +151,7 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
     metrics.json there (:func:`shadowlab.report.build`). ``resolution``: the reference's (W, H);
     default the image's size. ``gate``: a gate file, run on the image (exit 1 when it fails).
     ``out`` is never inside the store, and an existing directory shadowlab did not make is
-    written into only with ``force`` (:func:`shadowlab.report.outdir.claim_dir`). ``label``: the
+    written into only with ``force`` (:func:`shadowlab.io.outdir.claim_dir`). ``label``: the
     image's name in the report (default its file name); ``labels``: ``CHANNEL=TEXT`` titles of
     channels (``--label``), shown beside their light."""
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import InputError
-from ..report.outdir import check_out_file
+from ..io.outdir import check_out_file
 from ..scene._reader import check_param_values, did_you_mean
 from ..techniques import base
 

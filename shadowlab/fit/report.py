@@ -23,7 +23,7 @@ from ..errors import InputError
 from ..io.png import encode_png
 from ..report import images as _im
 from ..report.html import to_jsonable
-from ..report.outdir import claim_dir, write_dir
+from ..io.outdir import claim_dir, write_dir
 from . import preset as P
 
 OUTPUT_FILES = ("fit.json", "summary.md", "preset.toml", "index.html")
@@ -46,7 +46,7 @@ img.cbar { width: 192px; height: 10px; image-rendering: pixelated; display: bloc
 def check_out(out: Path, force: bool = False, protected=()):
     """Refuse an output path that cannot hold the report (before any fitting is done): inside the
     reference store (``protected``), an existing file, or an existing directory shadowlab did not
-    make (unless ``force``; :func:`shadowlab.report.outdir.claim_dir`)."""
+    make (unless ``force``; :func:`shadowlab.io.outdir.claim_dir`)."""
     out = Path(out)
     claim_dir(out, "fit", force=force, protected=protected, files=OUTPUT_FILES + ("img/",))
     for f in OUTPUT_FILES:

@@ -7,7 +7,7 @@ rendered or read (NaN/Inf, wrong size, missing channels: :class:`~shadowlab.erro
 exit 2) and checked. Only when every gate has been evaluated are ``junit.xml`` and ``index.html``
 written to the output directory. References are only read, never written.
 
-The output directory is checked first (:func:`shadowlab.report.outdir.claim_dir`): never inside
+The output directory is checked first (:func:`shadowlab.io.outdir.claim_dir`): never inside
 the reference store, not a file, and an existing directory only if shadowlab made it (it holds
 ``.shadowlab-report``) or with ``force``. An interrupted run (SIGINT, SIGTERM) does not look green:
 ``junit.xml`` is written with an ``interrupted`` error and the gates finished so far, and the
@@ -30,7 +30,7 @@ from ..reference import store
 from ..reference.truth import LightTruth, Truth, render_truth
 from ..render.frame import make_frame
 from ..render.shading import compose
-from ..report.outdir import MARKER, claim_dir, marker_text
+from ..io.outdir import MARKER, claim_dir, marker_text
 from ..scene import load
 from ..scene.spec import load_spec, resolve
 from ..techniques import base as tbase

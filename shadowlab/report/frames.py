@@ -16,7 +16,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from shadowlab.report.html import _fmt, to_jsonable
-from shadowlab.report.outdir import MARKER, claim_dir, inside, marker_text
+from shadowlab.io.outdir import MARKER, claim_dir, inside, marker_text
 
 __all__ = ["build_frames", "frames_summary", "FRAME_METRICS"]
 
@@ -108,7 +108,7 @@ def _html_page(summary: Mapping) -> str:
 def build_frames(out_dir, summary: Mapping, *, force: bool = False, protected=()) -> Path:
     """Write ``out_dir/index.html``, ``summary.md`` and ``metrics.json`` of a multi-frame compare
     (each file replaced atomically; the per-frame reports are already in ``frame_<NNNN>/``). The
-    caller claims ``out_dir`` (:func:`~shadowlab.report.outdir.claim_dir`) before anything is
+    caller claims ``out_dir`` (:func:`~shadowlab.io.outdir.claim_dir`) before anything is
     written into it; here only the store is kept out of it (``protected``)."""
     out = Path(out_dir)
     for root in protected or ():

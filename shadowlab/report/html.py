@@ -46,7 +46,7 @@ from shadowlab.report import charts as _charts
 from shadowlab.report import comparator as _cmp
 from shadowlab.report import images as _im
 from shadowlab.report.lights import light_rows
-from shadowlab.report.outdir import claim_dir, write_dir
+from shadowlab.io.outdir import claim_dir, write_dir
 
 __all__ = ["build", "summary_table", "stats_tables", "validate", "run_to_json", "to_jsonable", "higher_is_better"]
 
@@ -879,7 +879,7 @@ def build(out_dir, run: Mapping, *, force: bool = False, protected=(), kind: str
     """Write ``out_dir/index.html``, ``summary.md``, ``metrics.json`` and ``img/*.png`` for one run;
     returns the path of index.html.
 
-    ``out_dir`` must be ours or new (:func:`shadowlab.report.outdir.claim_dir`: an existing
+    ``out_dir`` must be ours or new (:func:`shadowlab.io.outdir.claim_dir`: an existing
     directory without the ``.shadowlab-report`` marker is refused unless ``force``) and outside
     the ``protected`` directories (the reference store).
 

@@ -6,7 +6,7 @@ parameter, its best point ringed; no JavaScript).
 
 Written like the other reports: built in a temporary sibling directory, then moved into place;
 in an existing DIR (ours, or any with ``--force``) only these files are replaced
-(:func:`shadowlab.report.outdir.claim_dir`).
+(:func:`shadowlab.io.outdir.claim_dir`).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pathlib import Path
 from ..errors import InputError
 from ..report.charts import colour, nice_ticks
 from ..report.html import to_jsonable
-from ..report.outdir import claim_dir, write_dir
+from ..io.outdir import claim_dir, write_dir
 
 __all__ = ["OUTPUT_FILES", "summary_markdown", "sweep_chart", "page", "write_report"]
 

@@ -23,7 +23,7 @@ from ..errors import InputError
 from ..pipeline import frame_list, load_scene
 from ..reference import store
 from ..report.html import higher_is_better
-from ..report.outdir import claim_dir
+from ..io.outdir import claim_dir
 from ..techniques import base as tbase
 from .points import SweepPoint, evaluate_point, parse_range, remember
 from .report import OUTPUT_FILES, write_report
