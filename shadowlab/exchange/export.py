@@ -41,12 +41,13 @@ import math
 import os
 import shutil
 import tempfile
+from importlib import metadata
 from pathlib import Path
 
 import mitsuba as mi
 import numpy as np
 
-from .. import __version__, backend
+from .. import backend
 from ..errors import InputError, SceneError
 from ..io.jsonio import write_json_atomic
 from ..io.png import encode_png
@@ -127,6 +128,16 @@ SCENE_CONVENTION = {
     "alpha": "opacity PNG looked up at the PLY's uv, nearest texel, PNG row 0 (top) at v = 0, clamped; 0 = the surface is "
              "not there (neither seen nor casting a shadow), 255 = opaque",
 }
+
+
+def _shadowlab_version() -> str | None:
+    """The installed distribution's version (pyproject.toml's), read from its metadata, so that
+    export depends on no package above it (the package's ``__init__`` is the API); None when
+    shadowlab runs from a source tree that is not installed."""
+    try:
+        return metadata.version("shadowlab")
+    except metadata.PackageNotFoundError:
+        return None
 
 
 def _rows(M) -> list:
@@ -450,7 +461,7 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
             "format": "shadowlab-export", "format_version": FORMAT_VERSION, "convention": SCENE_CONVENTION,
             "scene": spec.name, "scene_hash": spec.digest(), "source": spec.source,
             "description": spec.description, "resolution": [int(W), int(H)],
-            "shadowlab": __version__, "mitsuba": mi.MI_VERSION,
+            "shadowlab": _shadowlab_version(), "mitsuba": mi.MI_VERSION,
             "units": "metres",
             "files": {"mitsuba_xml": "scene.xml", "mitsuba_xml_meshes": "scene_mesh.xml", "camera": "camera.json",
                       "lights": "lights.json", "meshes": sorted(mesh_files.values()),
