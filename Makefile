@@ -64,8 +64,11 @@ references: run-deps
 		$(VENV)/bin/shadowlab reference $$s --force || exit $$?; done
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache
+	rm -rf $(VENV) build *.egg-info .pytest_cache docs/_build
 
-# Regenerate the README sections that come from scene files, technique declarations and the bench.
+# Regenerate the docs pages that come from scene files, technique declarations and bench run records,
+# then build the site (docs/_build/html) with warnings as errors, as the tests do.
 docs: venv
 	$(PY) -m shadowlab.docs
+	$(PY) -m sphinx -W --keep-going -q -b html docs docs/_build/html
+	@echo "docs: docs/_build/html/index.html"

@@ -62,8 +62,8 @@ def load_scene(scene: str, *, resolution: tuple | None = None, frame: int | None
 
 
 def make_frame(scene, *, supersampling: int = 1) -> FrameContext:
-    """The frame every technique of a comparison shares: G-buffer at pixel centres (``supersampling``²
-    per pixel), unshadowed light per light, light views made on demand and cached.
+    """The frame every technique of a comparison shares: G-buffer at pixel centres (``supersampling`` ×
+    ``supersampling`` per pixel), unshadowed light per light, light views made on demand and cached.
 
     >>> make_frame(load_scene("contact", resolution=(32, 24))).gbuffer.size
     768

@@ -63,13 +63,12 @@ def test_generator_data_round_trips_through_toml():
 # compare on the 16-light scene
 
 @pytest.fixture(scope="module")
-def many(mitsuba_backend):
+def many(frame_of):
     from shadowlab.reference import store
-    from shadowlab.render.frame import make_frame
     from shadowlab.scene import load
-    scene = load("many_lights")
-    truth, meta = store.load(scene.spec)
-    return scene, truth, make_frame(scene, seed=int(meta.get("seed", 0)))
+    truth, meta = store.load(load("many_lights").spec)
+    frame = frame_of("many_lights", seed=int(meta.get("seed", 0)))
+    return frame.scene, truth, frame
 
 
 #: the scene's maps (512², the sun 1024²): at 256² the point lights' cube maps leak (3.8 % of the
@@ -122,9 +121,9 @@ def test_fit_light_size_depth_threshold_and_exp_k(many):
 
 def test_bench_part_is_registered_and_its_report_has_both_tables():
     from shadowlab.bench import core, ssss
-    from shadowlab.docs import OWN_SECTIONS
+    from shadowlab.docs import BENCH_PARTS
     from shadowlab.errors import InputError
-    assert "ssss" in core.ONLY and "ssss" in OWN_SECTIONS
+    assert "ssss" in core.ONLY and "ssss" in BENCH_PARTS
     wide = ssss.wide_pcf()
     assert wide.resolve({"kernel": 23})["kernel"] == 23 and wide.name == "pcf"
     with pytest.raises(InputError, match="out of range"):

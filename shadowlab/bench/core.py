@@ -26,6 +26,9 @@ Measured (never asserted in tests):
   ``dpsv.json`` / ``dpsv.md``;
 * layered screen-space soft shadows (``shadowlab.bench.ssss``, [Tamás 2015]): ``ssss.json`` /
   ``ssss.md``.
+
+Each part also writes its run record, ``runs/DATE_PART_MACHINE.json`` (:mod:`shadowlab.bench.record`):
+committed under ``docs/bench/runs/``, it is what the docs' bench page is generated from.
 """
 
 from __future__ import annotations
@@ -54,6 +57,7 @@ from .fit import markdown as fit_markdown
 from .fit import measure as bench_fit
 from .sdf import run as sdf_bench
 from .ssss import run as ssss_bench
+from .record import write_record
 from .timing import machine_text, timed
 from .virtual import run as virtual_bench
 
@@ -397,39 +401,34 @@ def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
     (``out/truth.json``, ``out/truth.md``); the full run writes them all."""
     if only is not None and only not in ONLY:
         raise InputError(f"--only {only!r}: expected one of {', '.join(ONLY)} (or no --only for every benchmark)")
-    if only == "sdf":
-        return sdf_bench(Path(out), quick=quick)
-    if only == "cascades":
-        return cascades_bench(Path(out), quick=quick)
-    if only == "virtual":
-        return virtual_bench(Path(out), quick=quick)
-    if only == "dpsv":
-        return dpsv_bench(Path(out), quick=quick)
-    if only == "ssss":
-        return ssss_bench(Path(out), quick=quick)
-    if only == "scaling":
-        return scaling_bench(Path(out), quick=quick)
+    out = Path(out)
+    parts = {"sdf": sdf_bench, "cascades": cascades_bench, "virtual": virtual_bench, "dpsv": dpsv_bench,
+             "ssss": ssss_bench, "scaling": scaling_bench}
+    if only in parts:
+        return _recorded(out, only, parts[only](out, quick=quick))
     backend.init()
     res = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": backend.machine_info(),
            "quick": quick}
     gpu = str(res["machine"]["variant"]).startswith("cuda")  # a GPU's goal is a 1080p truth
     res["truth"] = bench_truth(res=128 if quick else ((1920, 1080) if gpu else 512), uniform_res=64 if quick else 128)
     if only == "truth":
-        out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
         write_json_atomic(out / "truth.json", res)
-        return write_bytes_atomic(out / "truth.md", "\n".join(_truth_markdown(res)).encode())
+        return _recorded(out, "truth", write_bytes_atomic(out / "truth.md", "\n".join(_truth_markdown(res)).encode()))
     res["techniques"] = bench_techniques(res=128 if quick else 512)
     res["filters"] = bench_filters(res=128 if quick else 256, map_sizes=(256, 512) if quick else (512, 1024, 2048),
                                    kernels=(1, 3) if quick else (1, 3, 5, 7), repeats=2 if quick else 5)
     res["sweep"] = bench_sweep(values=5 if quick else 50)
     res["fit"] = bench_fit(quick)  # pcss.light_scale: Adam vs grid search (the fitting goals)
-    res["sdf"] = str(sdf_bench(Path(out), quick=quick))  # [Bán 2019, ch. 6]: written to sdf.json / sdf.md
-    res["cascades"] = str(cascades_bench(Path(out), quick=quick))  # [Buljan 2020, ch. 4]: cascades.json / .md
-    res["virtual"] = str(virtual_bench(Path(out), quick=quick))  # [Giegl 2007]: virtual.json / .md / .png
-    res["dpsv"] = str(dpsv_bench(Path(out), quick=quick))  # [Wang 2022]: dpsv.json / dpsv.md
-    res["ssss"] = str(ssss_bench(Path(out), quick=quick))  # [Tamás 2015]: ssss.json / ssss.md
-    out = Path(out)
+    # [Bán 2019, ch. 6], [Buljan 2020, ch. 4], [Giegl 2007], [Wang 2022], [Tamás 2015]: PART.json / PART.md
+    for part in ("sdf", "cascades", "virtual", "dpsv", "ssss"):
+        res[part] = str(_recorded(out, part, parts[part](out, quick=quick)))
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "bench.json", res)
-    return write_bytes_atomic(out / "bench.md", _markdown(res).encode())
+    return _recorded(out, "core", write_bytes_atomic(out / "bench.md", _markdown(res).encode()))
+
+
+def _recorded(out: Path, part: str, md: Path) -> Path:
+    """``md``, after writing its run record to ``out/runs/`` (:mod:`shadowlab.bench.record`)."""
+    write_record(out, part, Path(md))
+    return md
