@@ -288,15 +288,6 @@ def corner_max(view, m, fp: dict):
     return dr.maximum(dr.maximum(vals[0], vals[1]), dr.maximum(vals[2], vals[3]))
 
 
-def footprint_weights(n: int, kind: str, f) -> list:
-    """Per axis: (m, weight) of texel i0 + m, m = −⌊n/2⌋ … n − ⌊n/2⌋, for the blur followed by
-    the bilinear lookup with fraction ``f``: (1 − f)·w_m + f·w_{m−1} (w = 0 outside the taps)."""
-    w = blur_weights(n, kind)
-    ks = tap_offsets(n)
-    wm = dict(zip(ks, w))
-    return [(m, (1.0 - f) * wm.get(m, 0.0) + f * wm.get(m - 1, 0.0)) for m in range(ks[0], ks[-1] + 2)]
-
-
 def _weight_table(n: int, kind: str):
     """The 1D tap weights padded with a 0 on both sides, as opaque Dr.Jit data: entry j + 1 is
     w at offset index j, entries 0 and n + 1 are 0 (the loop reads w_m and w_{m−1})."""
