@@ -81,6 +81,10 @@ __all__ = ["check", "Check", "GateResult", "Target", "truth_target", "Thresholds
            "parse_thresholds", "load_gate_file", "GateFile", "GateSpec", "run_gate_file"]
 
 
-def run_gate_file(path, out_dir=None, only=None, variant=None, echo=print):
-    """Evaluate a gate file; see :func:`shadowlab.gate.runner.run_gate_file`."""
-    return _run(path, out_dir=out_dir, only=only, variant=variant, echo=echo)
+def run_gate_file(path, out_dir=None, only=None, variant=None, echo=print, force: bool = False, frame=None,
+                  frames=None):
+    """Evaluate a gate file; see :func:`shadowlab.gate.runner.run_gate_file` (every argument is
+    passed on: ``force`` to claim an ``out_dir`` shadowlab did not make, ``frame`` / ``frames`` to
+    run every gate at those frames of its camera path)."""
+    return _run(path, out_dir=out_dir, only=only, variant=variant, echo=echo, force=force, frame=frame,
+                frames=frames)
