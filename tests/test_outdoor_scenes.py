@@ -23,7 +23,7 @@ from shadowlab.pipeline import technique_metrics
 from shadowlab.scene import load, load_spec, resolve
 from shadowlab.scene.lights import forward as lights_forward
 from shadowlab.techniques import base as tbase
-from conftest import CUDA
+from cross_cpu import grazing_pixels
 
 ROOT = Path(__file__).resolve().parents[1]
 REFS = ROOT / "references"
@@ -105,15 +105,15 @@ def test_committed_street_reference_loads_and_hard_compares(mitsuba_backend):
     truth, meta = store.load(sc.spec, sc.resolution, base=REFS)      # not stale, checksum verified
     assert meta["scene_hash"] == sc.spec.digest() and meta["target_missed"]["pixels"] == 0
     frame = make_frame(sc, seed=int(meta["seed"]))
-    # the truth's depth is the G-buffer's, pixel for pixel: a camera ray that grazes a far edge may
-    # hit on one CPU and miss on another (Embree's kernels follow the host's vector instructions)
+    # the truth's depth is the G-buffer's, pixel for pixel, but for the few camera rays that graze an
+    # edge and land elsewhere on another CPU or backend than the one that rendered the reference
+    # (tests/cross_cpu.py: measured one such pixel here on an AMD EPYC and on an H200)
     both = truth.mask & frame.gbuffer.mask[..., 0]
-    assert (truth.mask != frame.gbuffer.mask[..., 0]).sum() <= max(2, truth.mask.size // 2000)
+    allowed = grazing_pixels(truth.mask.size)
+    assert (truth.mask != frame.gbuffer.mask[..., 0]).sum() <= allowed
     rel = np.abs(truth.view_depth[both] / frame.gbuffer.view_depth[..., 0][both] - 1.0)
     assert np.mean(rel <= 1e-4) > 0.999      # grazing far pixels differ most
-    # the reference is llvm_ad_rgb's (Embree); under cuda_ad_rgb OptiX's intersector may put a grazing
-    # ray on another surface (measured on an H200: one pixel, depths 3.6× apart), as many as the mask allows
-    assert (rel >= 1e-3).sum() <= (max(2, truth.mask.size // 2000) if CUDA else 0)
+    assert (rel >= 1e-3).sum() <= allowed
     assert truth.view_depth[both].max() >= 200 and truth.view_depth[both].min() <= 3
     assert truth.mask.mean() > 0.75
     V = truth.lights["sun"].V[truth.mask]
