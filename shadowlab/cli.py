@@ -5,6 +5,13 @@ failed, 2 bad input or usage, 3 environment (no usable libLLVM, a file that cann
 out of memory), 4 internal error (a bug: one "please report" line; the traceback with
 ``SHADOWLAB_DEBUG=1``), 130 SIGINT (Ctrl-C), 143 SIGTERM. A signal stops the command with one
 line on stderr; the atomic writers remove what they had begun, so nothing partial is left.
+
+Start-up: registering the commands imports only typer and the standard library; each command
+imports the parts of shadowlab it runs (and with them Mitsuba, Dr.Jit, numpy, Dask) inside its own
+function, so ``shadowlab --help`` and a usage error answer without loading them. This module is
+the top layer, which nothing imports, so such an import cannot hide a cycle; tests/test_imports.py
+allows function-level imports here only, and tests/test_cli_startup.py checks that ``--help``
+loads no Mitsuba or Dr.Jit.
 """
 
 from __future__ import annotations
@@ -20,41 +27,24 @@ from typing import List, Optional
 
 import typer
 
-from . import backend
-from .bench import run as run_bench
-from .cluster import SCHEDULER_ENV, open_executor
 from .errors import INTERNAL_ERROR, GateFailure, InputError, Interrupted, ShadowlabError
-from .exchange.export import export_scene
-from .api import techniques_for
-from .exchange.ingest import default_out
-from .exchange.ingest import ingest as run_ingest
-from .fit import Budget
-from .fit import fit as run_fit
-from .fit.run import default_out as fit_default_out
-from .fit.preset import load as load_preset
-from .fit.report import summary_table as fit_table
-from .gate.runner import run_gate_file
-from .pipeline import compare as cmp
-from .pipeline import parse_resolution
-from .pipeline import reference_batch
-from .reference.truth import SEED_MAX
-from .reference.store import list_references
-from .report import summary_table
-from .report.frames import frames_summary
-from .scene.spec import builtin_names, load_spec, resolve
-from .sweep import default_out as sweep_default_out
-from .sweep import summary_markdown as sweep_summary
-from .sweep import sweep as run_sweep
-from .techniques import base
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Real-time shadow techniques against Mitsuba 3 ground truth.")
 
 DEBUG_ENV = "SHADOWLAB_DEBUG"
 
+# Constants that the options' help texts show when the commands are registered, copied here so
+# that --help needs no Mitsuba; tests/test_cli_startup.py checks that they equal their sources.
+SEED_MAX = 4294966                    # shadowlab.reference.truth.SEED_MAX
+SCHEDULER_ENV = "SHADOWLAB_SCHEDULER"  # shadowlab.cluster.SCHEDULER_ENV
+
 
 def _check_variant(value):
-    if value is not None and value not in backend.SUPPORTED_VARIANTS:
+    if value is None:
+        return value
+    from . import backend
+    if value not in backend.SUPPORTED_VARIANTS:
         raise typer.BadParameter(f"unknown variant {value!r}; choose one of {', '.join(backend.SUPPORTED_VARIANTS)}")
     return value
 
@@ -81,12 +71,18 @@ ForceOpt = typer.Option(False, "--force", help="Write into an existing --out dir
 
 FrameOpt = typer.Option(None, "--frame", help="Frame N of the scene's camera path (0..frames-1; a scene without "
                         "a path has only frame 0).")
-FramesOpt = typer.Option(None, "--frames", help="Frames A:B of the camera path, both ends included (0:3 is "
-                         "frames 0, 1, 2, 3).")
 
 
 def _init(variant):
+    from . import backend
     backend.init(variant)
+
+
+def builtin_names() -> list[str]:
+    """The built-in scenes' names (:func:`shadowlab.scene.spec.builtin_names`; the ``scene``
+    package loads Mitsuba, so it is imported when a command asks)."""
+    from .scene.spec import builtin_names as names
+    return names()
 
 
 def _progress() -> bool:
@@ -101,6 +97,7 @@ def _split(csv: str) -> list[str]:
 @app.command()
 def scenes(names: bool = typer.Option(False, "--names", help="Only the names, one per line.")):
     """List the built-in scenes."""
+    from .scene.spec import load_spec, resolve
     for n in builtin_names():
         if names:
             typer.echo(n)
@@ -115,6 +112,7 @@ def scenes(names: bool = typer.Option(False, "--names", help="Only the names, on
 @app.command()
 def techniques(markdown: bool = typer.Option(False, "--markdown", help="Print Markdown tables (README).")):
     """List the registered techniques with their parameter tables."""
+    from .techniques import base
     for n in base.names():
         t = base.get(n)
         if markdown:
@@ -154,6 +152,8 @@ def reference(scenes_: Optional[List[str]] = typer.Argument(None, metavar="SCENE
               workers: Optional[int] = WorkersOpt, scheduler: Optional[str] = SchedulerOpt,
               variant: Optional[str] = VariantOpt):
     """Render and store the Mitsuba ground truth of scenes (of each frame of a camera path: --frames)."""
+    from .cluster import open_executor
+    from .pipeline import parse_resolution, reference_batch
     _init(variant)
     names = _scene_list(scenes_, all_)
     with open_executor(workers, scheduler) as ex:
@@ -194,6 +194,7 @@ def _reference_done(path, meta):
 @app.command()
 def references():
     """List the stored references."""
+    from .reference.store import list_references
     for r in list_references():
         m = r["meta"]
         se = m.get("max_std_error")
@@ -204,6 +205,10 @@ def references():
 
 
 def _compare(scene, techs, sets, out, resolution, variant, preset=None, force=False, frame=None, frames=None):
+    from .pipeline import compare as cmp
+    from .pipeline import parse_resolution
+    from .report import summary_table
+    from .report.frames import frames_summary
     _init(variant)
     run = cmp(scene, techs, sets, Path(out) if out else None, parse_resolution(resolution),
               params=preset.values if preset else None, preset=preset.info() if preset else None, force=force,
@@ -232,6 +237,7 @@ def compare(scene: str = typer.Argument(..., help="Built-in scene name or path t
                                                  "technique × frame table with the shimmer (two frames or more)."),
             variant: Optional[str] = VariantOpt):
     """Compare techniques with the ground truth; write index.html, summary.md, metrics.json."""
+    from .fit.preset import load as load_preset
     out = out or f"reports/{Path(scene).stem}"
     pre = load_preset(preset) if preset else None
     techs = _split(techniques_) if techniques_ is not None else list(pre.values) if pre else ["hard", "pcf"]
@@ -242,6 +248,7 @@ def compare(scene: str = typer.Argument(..., help="Built-in scene name or path t
 
 def _applicable(scene: str) -> list[str]:
     """``-t all``: every technique that renders ``scene``; those that cannot are listed with the reason."""
+    from .api import techniques_for
     why = techniques_for(scene)
     for n, reason in why.items():
         if reason:
@@ -291,6 +298,12 @@ def fit(scenes_: List[str] = typer.Argument(..., metavar="SCENE...", help="Built
     """Fit technique parameters to the ground truth; write DIR/fit.json, index.html, summary.md, preset.toml.
     Several scenes: one preset for all of them, each scene's loss beside it; each evaluation is one job
     per scene frame (--workers / --scheduler: on a Dask cluster, same results)."""
+    from .cluster import open_executor
+    from .fit import Budget
+    from .fit import fit as run_fit
+    from .fit.report import summary_table as fit_table
+    from .fit.run import default_out as fit_default_out
+    from .pipeline import parse_resolution
     _init(variant)
     if technique == "all":              # -t all: every technique that applies (the others listed with the reason)
         technique, all_ = None, True
@@ -322,6 +335,10 @@ def sweep(scenes_: List[str] = typer.Argument(..., metavar="SCENE...", help="Bui
           workers: Optional[int] = WorkersOpt, scheduler: Optional[str] = SchedulerOpt,
           variant: Optional[str] = VariantOpt):
     """Every metric of a technique against one parameter, per scene; write sweep.json, summary.md, index.html."""
+    from .pipeline import parse_resolution
+    from .sweep import default_out as sweep_default_out
+    from .sweep import summary_markdown as sweep_summary
+    from .sweep import sweep as run_sweep
     _init(variant)
     out = out or str(sweep_default_out(technique, param))
     rec = run_sweep(scenes_, technique, param, sets=set_, resolution=parse_resolution(resolution), frame=frame,
@@ -339,6 +356,8 @@ def export(scene: str = typer.Argument(..., help="Built-in scene name or path to
            force: bool = typer.Option(False, "--force", help="Replace the exported files in an existing directory."),
            variant: Optional[str] = VariantOpt):
     """Export a scene for another renderer: Mitsuba XML, PLY meshes, camera.json, lights.json."""
+    from .exchange.export import export_scene
+    from .pipeline import parse_resolution
     _init(variant)
     m = export_scene(scene, Path(out), resolution=parse_resolution(resolution), segments=segments, spp=spp,
                      force=force)
@@ -368,6 +387,10 @@ def ingest(scene: str = typer.Argument(..., help="Built-in scene name or path to
            force: bool = ForceOpt,
            variant: Optional[str] = VariantOpt):
     """Compare an image rendered elsewhere with the stored ground truth; write a report."""
+    from .exchange.ingest import default_out
+    from .exchange.ingest import ingest as run_ingest
+    from .pipeline import parse_resolution
+    from .report import summary_table
     _init(variant)
     out = out or str(default_out(scene, image))
     names = [x for x in label if "=" not in x]
@@ -402,6 +425,7 @@ def gate(gatefile: str = typer.Argument(..., help="Gate file (TOML), e.g. refere
                                               "included), one gate per frame, named NAME@frameN."),
          variant: Optional[str] = VariantOpt):
     """Gate candidates against stored references; exit 0 pass, 1 a gate failed, 2 bad input."""
+    from .gate import run_gate_file
     code, results = run_gate_file(gatefile, out_dir=Path(out), only=_split(only) if only else None, variant=variant,
                                   echo=typer.echo, force=force, frame=frame, frames=frames)
     if code:
@@ -419,6 +443,7 @@ def bench(out: str = typer.Option("reports/bench", "--out", "-o"),
                                 "truth's throughput against raw ray_test, truth.md)."),
           variant: Optional[str] = VariantOpt):
     """Measure ground-truth throughput and technique compile / warm run times."""
+    from .bench import run as run_bench
     _init(variant)
     path_md = run_bench(Path(out), quick=quick, only=only)
     typer.echo(Path(path_md).read_text())
