@@ -96,7 +96,7 @@ def _fit_then_compare(scene, tmp_path, steps=10):
 
 
 def _check(f, d, p, pre, lights):
-    from shadowlab.techniques.pcss import scene_light_size
+    from shadowlab.techniques.blocker_search import scene_light_size
     scale = pre.values["pcss"]["light_scale"]
     assert set(pre.values["pcss"]) == {"light_scale"}                       # one scale for all lights
     assert f["params"]["light_scale"]["start"] == 1.0                       # the start is the scene's lights

@@ -16,7 +16,7 @@ import pytest
 from shadowlab.errors import InputError
 from shadowlab.reference.closed_form import parallel_planes_fraction
 from shadowlab.techniques import get
-from shadowlab.techniques import pcss as pcss_mod
+from shadowlab.techniques import blocker_search as search_mod
 
 LIGHT = "panel"
 H_LIGHT, H_OCC = 4.0, 2.0
@@ -249,9 +249,9 @@ def test_light_size_mapping_from_the_scene(planes):
              (LightSpec("f", "directional", angular_diameter=0.53), 0.008197816217557791),  # √π/2·0.53°·π/180
              (LightSpec("f2", "directional", angular_diameter=2.0), 0.03093515553795393)]   # √π/2·2°·π/180
     for light, expected in cases:
-        assert pcss_mod.scene_light_size(light) == pytest.approx(expected, rel=1e-12), light.name
+        assert search_mod.scene_light_size(light) == pytest.approx(expected, rel=1e-12), light.name
     # the equal-area property itself: w_light² = the light's area (solid angle for the sun, small angle)
-    assert pcss_mod.scene_light_size(LightSpec("g", "disk", radius=0.7)) ** 2 == pytest.approx(math.pi * 0.7 ** 2)
+    assert search_mod.scene_light_size(LightSpec("g", "disk", radius=0.7)) ** 2 == pytest.approx(math.pi * 0.7 ** 2)
     r = get("pcss").render(planes[0], {})
     assert r.stats["light_size"][LIGHT] == 1.0
     assert get("pcss").render(planes[0], {"light_scale": 0.7}).stats["light_size"][LIGHT] == pytest.approx(0.7)
@@ -331,17 +331,17 @@ def test_aovs_and_stats(planes):
 
 
 def test_sampling_patterns():
-    for n, pts in pcss_mod.SEARCH_SETS.items():
+    for n, pts in search_mod.SEARCH_SETS.items():
         assert pts.shape == (n, 2) and np.all(np.abs(pts) <= 0.5 + 1e-12)
         assert np.allclose(pts.mean(0), 0.0, atol=1e-12)
         d = np.sqrt(((pts[:, None] - pts[None]) ** 2).sum(-1)) + np.eye(n)
         assert d.min() > 0.35 / math.sqrt(n)                              # well spread
-    for n in pcss_mod.PCF_COUNTS:
-        p = pcss_mod.pcf_pattern(n)
+    for n in search_mod.PCF_COUNTS:
+        p = search_mod.pcf_pattern(n)
         assert p.shape == (n, 2) and np.allclose(p.mean(0), 0.0) and np.all(np.abs(p) < 0.5)
         if n > 1:                                                      # one tap per row and column
             assert len(np.unique(np.round(p[:, 0] * n, 6))) == n and len(np.unique(np.round(p[:, 1] * n, 6))) == n
-    assert np.array_equal(pcss_mod.best_candidate(16), pcss_mod.SEARCH_SETS[16])  # deterministic
+    assert np.array_equal(search_mod.best_candidate(16), search_mod.SEARCH_SETS[16])  # deterministic
 
 
 def test_invalid_parameters_are_refused(mitsuba_backend):

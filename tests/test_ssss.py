@@ -289,7 +289,7 @@ def test_against_the_truth_on_parallel_planes(mitsuba_backend):
 # the min filter (``penumbra = "min_filter"``): Dr.Jit kernels against scipy
 
 class _MapView:
-    """What the min filter reads of a LightView: z, hit, nfaces, res, dr(name), _dr."""
+    """What the min filter reads of a LightView: z, hit, nfaces, res, dr(name), derived(key, make)."""
 
     def __init__(self, z, hit):
         self.z, self.hit = z, hit
@@ -301,6 +301,10 @@ class _MapView:
         if name not in self._dr:
             self._dr[name] = mi.Float(np.ascontiguousarray(getattr(self, name), np.float32).ravel())
         return self._dr[name]
+
+    def derived(self, key, make):     # the LightView's own cache, on this stand-in's _dr
+        from shadowlab.render.lightview import LightView
+        return LightView.derived(self, key, make)
 
 
 def _random_map(F, N, seed):

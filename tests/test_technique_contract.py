@@ -132,7 +132,7 @@ def test_light_scale_is_the_one_light_size_convention():
 def test_pcss_light_scale_scales_every_light_by_its_own_size(two):
     """light_scale 1 is each light's own size (pcss: the side of its equal-area square), and a
     scale multiplies each in proportion; the stats report it per light and per map."""
-    from shadowlab.techniques.pcss import scene_light_size
+    from shadowlab.techniques.blocker_search import scene_light_size
     t = get("pcss")
     r1 = t.render(two, {})
     r2 = t.render(two, {"light_scale": 0.5})

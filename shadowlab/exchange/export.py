@@ -212,7 +212,7 @@ def light_info(light, mitsuba_dict: dict, ply: str | None) -> dict:
         to_world = _translate(d["position"])
     else:  # delta directional: a frame whose +z is the direction
         fwd = lights_mod.forward(light)
-        up = lights_mod._up_for(fwd, light.up)
+        up = lights_mod.up_for(fwd, light.up)
         to_world = matrix_of(mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=list(fwd), up=list(up)))
     pose = _rigid(to_world)
     info = {

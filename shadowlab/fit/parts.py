@@ -211,7 +211,7 @@ class PartsObjective:
 
     def value(self, values: dict) -> float:
         out = [r["objective"] for r in self._run(values)]
-        self.part_values[S._key(values)] = out
+        self.part_values[S.point_key(values)] = out
         return float(np.mean(out))
 
     def loss_grad(self, base: dict, dims: list, us: dict) -> tuple:
@@ -221,7 +221,7 @@ class PartsObjective:
         out = self._run({k: v for k, v in base.items() if k not in us}, grad)
         xs = out[0]["x"]
         objs = [r["objective"] for r in out]
-        self.part_values[S._key({**base, **xs})] = objs
+        self.part_values[S.point_key({**base, **xs})] = objs
         g = {d.name: float(np.mean([r["grad"][d.name] for r in out])) for d in dims}
         return float(np.mean(objs)), xs, g
 
@@ -233,7 +233,7 @@ class PartsObjective:
     def by_scene(self, values: dict) -> dict:
         """{scene name: {"objective", "loss", "frames"}}: each scene's mean over its frames of the
         parts' objectives at ``values`` (evaluated now if this point was not)."""
-        k = S._key(values)
+        k = S.point_key(values)
         if k not in self.part_values:
             self.value(values)
         vals = self.part_values[k]

@@ -206,7 +206,9 @@ def make_dim(p, method: str, start, ref, user=None, differentiable_loss: bool = 
 # the search state: evaluations, history, best point
 
 
-def _key(values: dict) -> tuple:
+def point_key(values: dict) -> tuple:
+    """A search point as a hashable key (numbers as floats, names sorted): the key of every
+    evaluation cache of a fit."""
     return tuple(sorted((k, float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else v)
                         for k, v in values.items()))
 
@@ -228,7 +230,7 @@ class Search:
     notes: list = field(default_factory=list)
 
     def evaluate(self, values: dict, stage: str, param: str | None = None) -> float:
-        k = _key(values)
+        k = point_key(values)
         if k in self.cache:
             return self.cache[k]
         o = self.obj.value(values)
@@ -240,7 +242,7 @@ class Search:
         kern = self.counter.take()
         if not math.isfinite(o):
             o = math.inf
-        self.cache[_key(values)] = o
+        self.cache[point_key(values)] = o
         e = {"i": len(self.history), "stage": stage, "values": {n: values[n] for n in self.names},
              "objective": o, "loss": self.obj.report(o) if math.isfinite(o) else None,
              "kernels_launched": kern["launched"], "kernels_new": kern["new"], "kernels_compiled": kern["compiled"],

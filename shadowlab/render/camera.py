@@ -99,7 +99,7 @@ class Camera:
         if not 0 < self.near < self.far:
             raise ValueError(f"camera clip planes: expected 0 < near < far, got near {self.near}, far {self.far}")
         f = _unit(self.target - self.position)
-        up = _unit(lights_mod._up_for(tuple(f), tuple(self.up_given)))
+        up = _unit(lights_mod.up_for(tuple(f), tuple(self.up_given)))
         left = _unit(np.cross(up, f))         # Mitsuba's look_at: camera +x
         self.forward = f
         self.left = left

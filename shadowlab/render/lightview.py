@@ -282,7 +282,7 @@ class Projection:
 def _frame(fwd, up):
     f = np.asarray(fwd, float)
     f /= np.linalg.norm(f)
-    u = np.asarray(lights_mod._up_for(tuple(f), up), float)
+    u = np.asarray(lights_mod.up_for(tuple(f), up), float)
     r = np.cross(f, u)
     r /= np.linalg.norm(r)
     u = np.cross(r, f)
@@ -470,6 +470,13 @@ class LightView:
         if name not in self._dr:
             self._dr[name] = mi.Float(np.ascontiguousarray(getattr(self, name), np.float32).ravel())
         return self._dr[name]
+
+    def derived(self, key: str, make):
+        """A Dr.Jit array a technique derives from this map (e.g. a filtered depth), made once by
+        ``make(self)`` and kept with the map's own arrays under ``key``."""
+        if key not in self._dr:
+            self._dr[key] = make(self)
+        return self._dr[key]
 
     def fetch(self, name: str, face, ix, iy, layer: int = 0):
         """Texel values at integer texel coordinates, clamped to the face (Dr.Jit); ``layer`` k ≥ 1

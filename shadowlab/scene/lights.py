@@ -42,7 +42,7 @@ def forward(light: LightSpec) -> tuple:
     return (0.0, -1.0, 0.0)
 
 
-def _up_for(fwd, up):
+def up_for(fwd, up):
     """An up vector not parallel to ``fwd``."""
     c = abs(sum(a * b for a, b in zip(fwd, _unit(up))))
     if c > 0.999:
@@ -99,18 +99,18 @@ def mitsuba_dict(light: LightSpec, scene_center, scene_radius) -> tuple[str, dic
         dist = SUN_DISTANCE * scene_radius
         pos = [c - dist * x for c, x in zip(scene_center, d)]
         r = dist * math.tan(math.radians(light.angular_diameter) / 2)
-        to_world = T().look_at(origin=pos, target=list(scene_center), up=list(_up_for(d, light.up))) @ T().scale([r, r, 1])
+        to_world = T().look_at(origin=pos, target=list(scene_center), up=list(up_for(d, light.up))) @ T().scale([r, r, 1])
         return key, {"type": "disk", "to_world": to_world, "emitter": {"type": "area", "radiance": rgb}}
     if light.is_delta:
         if k == "spot":
             return key, {"type": "spot", "to_world": T().look_at(origin=list(light.position), target=list(light.target),
-                                                                   up=list(_up_for(forward(light), light.up))),
+                                                                   up=list(up_for(forward(light), light.up))),
                          "cutoff_angle": light.angle, "beam_width": light.angle * 0.999, "intensity": rgb}
         return key, {"type": "point", "position": list(light.position), "intensity": rgb}
     if k in ("sphere", "point"):
         return key, {"type": "sphere", "center": list(light.position), "radius": light.radius,
                      "emitter": {"type": "area", "radiance": rgb}}
-    look = T().look_at(origin=list(light.position), target=list(light.target), up=list(_up_for(forward(light), light.up)))
+    look = T().look_at(origin=list(light.position), target=list(light.target), up=list(up_for(forward(light), light.up)))
     if k == "rect":
         to_world = look @ T().scale([light.size[0] / 2, light.size[1] / 2, 1])
         return key, {"type": "rectangle", "to_world": to_world, "emitter": {"type": "area", "radiance": rgb}}

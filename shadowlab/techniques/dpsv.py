@@ -69,8 +69,8 @@ import mitsuba as mi
 
 from ..render.top_tree import ORDERS, offset_point, query
 from .base import LightResult, Param, Pooled, Technique, light_scale_param, param_table_markdown, register, scaled_size
-from .pcss import (PCF_COUNTS, _blocked, _pattern_arrays, pcf_pattern, penumbra_width, scene_light_size,
-                   search_width)
+from .blocker_search import (PCF_COUNTS, blocked, pattern_arrays, pcf_pattern, penumbra_width, scene_light_size,
+                             search_width)
 from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, depth_test, map_entry, map_stats, receiver,
                          receiver_plane_gradient, texel_index, to_light)
 
@@ -237,7 +237,7 @@ def _search_grid(view, rec, g, bias, w_search, spacing, n_max: int):
         j, i = k % dr.maximum(n, 1), k // dr.maximum(n, 1)
         du, dv = (mi.Float(j) - half) * step, (mi.Float(i) - half) * step
         ix, iy = texel_index(u + du), texel_index(v + dv)
-        hit = _blocked(view, face, ix, iy, rec["dt"] + g[0] * du + g[1] * dv, bias)
+        hit = blocked(view, face, ix, iy, rec["dt"] + g[0] * du + g[1] * dv, bias)
         z = view.fetch("z", face, ix, iy)
         return k + 1, cnt + dr.select(hit, 1.0, 0.0), zs + dr.select(hit, z, 0.0)
 
@@ -311,7 +311,7 @@ class FusedDPSVSoft(_Fused):
         w_px = w_pen / dr.maximum(pixel_world, 1e-12)
         run = found & (w_px >= 1.0)
         nt = int(values["filter_samples"])
-        px, py = _pattern_arrays(pcf_pattern(nt))
+        px, py = pattern_arrays(pcf_pattern(nt))
         reject = dr.opaque(mi.Float, float(values["depth_reject"])) * w_pen
         vis = _filter_visibility(screen, hard_vis, to_light(view, frame.gbuffer.p), w_pen, reject, px, py, nt, run)
         aovs = {"edge": dr.select(edge, 1.0, 0.0), **tree_aovs, "texel": rec["texel"],

@@ -132,81 +132,15 @@ import math
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from ..errors import InputError
-from ._random import uniform as _uniform
 from .base import LightResult, Param, Pooled, light_scale_param, param_table_markdown, register, scaled_size
 from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, map_entry, map_stats, receiver, receiver_plane_gradient,
                          stored_depth, texel_index)
+from .blocker_search import (BLOCKER_COUNTS, PCF_COUNTS, SEARCH_SETS, pattern_arrays, pcf_loop, pcf_pattern,
+                             penumbra_width, scene_light_size, search_loop, search_width)
 
 SOURCE = "[Buljan 2020, §3.6]"
-BLOCKER_COUNTS = (16, 25, 32)
-PCF_COUNTS = (1, 16, 32, 64)
-
-# ----------------------------------------------------------------------------------------------
-# sampling patterns
-
-#: seed of the blocker-search point sets (fixed: the sets are part of the technique's definition)
-SEARCH_SEED = 0x5EED_036
-
-
-def best_candidate(count: int, seed: int = SEARCH_SEED, candidates: int = 64) -> np.ndarray:
-    """``count`` well-spread points of the unit square as offsets in [−½, ½]²: Mitchell's best
-    candidate (each new point is, of ``candidates`` uniform candidates, the one farthest from the
-    points so far), then centred (mean 0, so the search is not shifted) and scaled back into
-    [−½, ½]² if centring moved a point out. Deterministic (splitmix64 counter stream)."""
-    u = _uniform(seed, 0, 2 * candidates * count).reshape(count, candidates, 2)
-    pts = [u[0, 0]]
-    for k in range(1, count):
-        c = u[k]
-        d = np.min(((c[:, None, :] - np.asarray(pts)[None]) ** 2).sum(-1), axis=1)
-        pts.append(c[int(np.argmax(d))])
-    p = np.asarray(pts) - 0.5
-    p = p - p.mean(0)
-    return p * min(1.0, 0.5 / float(np.max(np.abs(p))))
-
-
-#: blocker-search offsets (units of w_search) by count
-SEARCH_SETS = {n: best_candidate(n) for n in BLOCKER_COUNTS}
-
-
-def radical_inverse2(k: int) -> float:
-    """Base-2 radical inverse φ₂(k): the bits of k mirrored about the binary point."""
-    r, f = 0.0, 0.5
-    while k:
-        r += f * (k & 1)
-        k >>= 1
-        f *= 0.5
-    return r
-
-
-def pcf_pattern(n: int) -> np.ndarray:
-    """PCF offsets (units of w_f) in [−½, ½)²: the centred Hammersley set
-    ((k + ½)/n, φ₂(k) + ½/n) − ½, k = 0 … n − 1."""
-    return np.array([((k + 0.5) / n - 0.5, (radical_inverse2(k) + 0.5 / n) % 1.0 - 0.5) for k in range(n)])
-
-
-def _pattern_arrays(offsets: np.ndarray):
-    """A tap pattern as two evaluated Dr.Jit Floats (x and y), read by index inside the loops."""
-    x, y = (mi.Float(np.ascontiguousarray(offsets[:, i], np.float32)) for i in range(2))
-    dr.make_opaque(x, y)
-    return x, y
-
-
-# ----------------------------------------------------------------------------------------------
-# light size
-
-SIZE_FACTOR = {"rect": 1.0, "disk": math.sqrt(math.pi) / 2, "spot": math.sqrt(math.pi) / 2,
-               "sphere": math.sqrt(math.pi) / 2, "point": math.sqrt(math.pi) / 2,
-               "directional": math.sqrt(math.pi) / 2}
-
-
-def scene_light_size(light) -> float:
-    """w_light of a light at ``light_scale`` 1: ``physical_size`` × the factor of its kind
-    (the module docstring's table: the side of the equal-area square)."""
-    return SIZE_FACTOR[light.kind] * light.physical_size
-
 
 PCSS_PARAMS = (
     light_scale_param(SOURCE, doc="w_light = light_scale × the side of the light's equal-area square: rect √(w·h); "
@@ -223,88 +157,6 @@ PCSS_PARAMS = (
           doc="receiver plane depth bias: every tap compares against the receiver's tangent plane at that "
               "tap (not in the source; removes self-blocking of tilted receivers)"),
 )
-
-
-# ----------------------------------------------------------------------------------------------
-# taps
-
-def _bilinear_corners(u, v):
-    """The four texels around a continuous texel coordinate and their bilinear weights."""
-    x, y = u - 0.5, v - 0.5
-    x0, y0 = dr.floor(x), dr.floor(y)
-    fx, fy = x - x0, y - y0
-    ix, iy = mi.Int32(dr.detach(x0)), mi.Int32(dr.detach(y0))
-    return ((ix, iy, (1.0 - fx) * (1.0 - fy)), (ix + 1, iy, fx * (1.0 - fy)),
-            (ix, iy + 1, (1.0 - fx) * fy), (ix + 1, iy + 1, fx * fy))
-
-
-def _blocked(view, face, ix, iy, dt, bias):
-    """``hard``'s biased test of texel (ix, iy) against the reference NDC depth ``dt``:
-    True where the texel is a blocker (shadowed)."""
-    Db, empty, _ = stored_depth(view, face, ix, iy, bias)
-    return ~empty & (Db < dt)
-
-
-def _tap(view, rec, g, u, v, du, dv, bias):
-    """One bilinear tap at (u + du, v + dv): (weighted shadowed fraction, weighted blocker z)."""
-    dt = rec["dt"] if g is None else rec["dt"] + g[0] * du + g[1] * dv
-    n = z = None
-    for ix, iy, w in _bilinear_corners(u + du, v + dv):
-        b = dr.select(_blocked(view, rec["face"], ix, iy, dt, bias), w, 0.0)
-        bz = b * view.fetch("z", rec["face"], ix, iy)
-        n = b if n is None else n + b
-        z = bz if z is None else z + bz
-    return n, z
-
-
-def _search_loop(view, rec, g, bias, w, px, py, n: int):
-    """Σ over the ``n`` search taps of (weighted blocker count, weighted blocker depth): a
-    symbolic loop (an unrolled one takes long to compile)."""
-    u, v = rec["u"], rec["v"]
-
-    def body(k, cnt, zsum):
-        c, z = _tap(view, rec, g, u, v, dr.gather(mi.Float, px, k) * w, dr.gather(mi.Float, py, k) * w, bias)
-        return k + 1, cnt + c, zsum + z
-
-    m = dr.width(u)
-    _, cnt, zsum = dr.while_loop((dr.zeros(mi.UInt32, m), dr.zeros(mi.Float, m), dr.zeros(mi.Float, m)),
-                                 lambda k, c, z: k < n, body, labels=("k", "count", "zsum"),
-                                 label="pcss_blocker_search", max_iterations=n)
-    return cnt, zsum
-
-
-def _pcf_loop(view, rec, g, bias, w, px, py, n: int, run):
-    """Σ over the ``n`` PCF taps of the shadowed fraction of each bilinear tap, only where
-    ``run`` (a blocker was found): a symbolic loop."""
-    u, v = rec["u"], rec["v"]
-
-    def body(k, dark):
-        c, _ = _tap(view, rec, g, u, v, dr.gather(mi.Float, px, k) * w, dr.gather(mi.Float, py, k) * w, bias)
-        return k + 1, dark + c
-
-    m = dr.width(u)
-    _, dark = dr.while_loop((dr.zeros(mi.UInt32, m), dr.zeros(mi.Float, m)), lambda k, d: run & (k < n), body,
-                            labels=("k", "dark"), label="pcss_pcf", max_iterations=n)
-    return dark
-
-
-def search_width(view, zr, w_light):
-    """Step 1's w_search in texels at receiver depth ``zr`` (the module docstring's units):
-    (z̃ − z_near)/z̃ · w_light on the near plane, or (z̃ − z_near)·tan w_light for an orthographic map."""
-    f0 = view.proj.faces[0]
-    N, near = view.res, f0.near
-    if f0.ortho:
-        return dr.maximum(zr - near, 0.0) * dr.tan(w_light) * (1.0 / (2.0 * f0.scale / N))
-    zs = dr.maximum(zr, near)
-    return (zs - near) / zs * w_light * (N / (2.0 * near * f0.scale))
-
-
-def penumbra_width(view, zr, z_avg, w_light):
-    """Step 2's w_penumbra, world units at the receiver: (z̃ − z_avg)/z_avg · w_light, or
-    (z̃ − z_avg)·tan w_light for an orthographic map."""
-    if view.proj.faces[0].ortho:
-        return dr.maximum(zr - z_avg, 0.0) * dr.tan(w_light)
-    return dr.maximum(zr - z_avg, 0.0) / dr.maximum(z_avg, 1e-6) * w_light
 
 
 # ----------------------------------------------------------------------------------------------
@@ -342,8 +194,8 @@ class PCSS(ShadowMapTechnique):
         w_search = search_width(view, zr, w_light)
         # 1. blocker search
         nb = int(values["blocker_samples"])
-        px, py = _pattern_arrays(SEARCH_SETS[nb])
-        cnt, zsum = _search_loop(view, rec, g, bias, w_search, px, py, nb)
+        px, py = pattern_arrays(SEARCH_SETS[nb])
+        cnt, zsum = search_loop(view, rec, g, bias, w_search, px, py, nb)
         found = rec["active"] & (cnt > 0.0)
         z_avg = dr.select(found, zsum / dr.maximum(cnt, 1e-20), zr)
         # 2. penumbra width (world units at the receiver), 3. filter width (texels)
@@ -354,8 +206,8 @@ class PCSS(ShadowMapTechnique):
             w_pen_tex = w_pen / dr.maximum(rec["texel"], 1e-12)
         w_f = dr.maximum(w_pen_tex, dr.opaque(mi.Float, float(values["min_filter"])))
         npcf = int(values["pcf_samples"])
-        px, py = _pattern_arrays(pcf_pattern(npcf))
-        dark = _pcf_loop(view, rec, g, bias, w_f, px, py, npcf, found)
+        px, py = pattern_arrays(pcf_pattern(npcf))
+        dark = pcf_loop(view, rec, g, bias, w_f, px, py, npcf, found)
         vis = dr.select(found, dr.clip(1.0 - dark * (1.0 / npcf), 0.0, 1.0), 1.0)
         act = rec["active"]
         aovs = {"penumbra_width": dr.select(found, w_pen, 0.0), "penumbra_texels": dr.select(found, w_pen_tex, 0.0),

@@ -12,7 +12,7 @@ Per frame:
    shadowed, 1 outside the light camera.
 3. **Penumbra map** per layer [Tamás 2015, §6.2–6.3]: the penumbra size, world units at the
    receiver, w = (d_receiver − d_blocker)·w_light/d_blocker with linear light-space depths
-   (the source reconstructs them from the depth buffer; ``pcss.penumbra_width``, an
+   (the source reconstructs them from the depth buffer; ``blocker_search.penumbra_width``, an
    orthographic map (sun): (d_r − d_b)·tan w_light), d_blocker from
    ``penumbra`` = ``blocker_search``: ``pcss``'s search (the mean depth of the blockers over the
    w_search square, ``blocker_samples`` bilinear taps, receiver-plane test), or
@@ -21,7 +21,7 @@ Per frame:
    square of the farthest receiver), read at the receiver's texel: a blocker where that minimum
    is nearer than the receiver's biased depth. The *penumbra mask* is folded into the size:
    0 where no blocker was found, and 0 means "no blur". ``w_light`` = ``light_scale`` ×
-   ``pcss.scene_light_size`` (the side of the light's equal-area square). Where two lights of a
+   ``blocker_search.scene_light_size`` (the side of the light's equal-area square). Where two lights of a
    layer light one point (only after a k-bound overflow) the layer keeps the larger size.
    Stored per layer at ``penumbra_bits`` 16 (IEEE half float, what an RGBA16F texel holds, 4
    layers per texel) or 8 (UNORM over [0, the layer's largest size], the banding the source
@@ -88,8 +88,8 @@ import numpy as np
 from ..errors import InputError
 from ..scene.light_layers import colour, lit_volume
 from .base import LightResult, Param, light_scale_param, param_table_markdown, register, scaled_size
-from .pcss import BLOCKER_COUNTS, SEARCH_SETS, _pattern_arrays, _search_loop, penumbra_width, scene_light_size, \
-    search_width
+from .blocker_search import (BLOCKER_COUNTS, SEARCH_SETS, pattern_arrays, penumbra_width, scene_light_size,
+                             search_loop, search_width)
 from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, depth_test, map_entry, map_stats, receiver,
                          receiver_plane_gradient, texel_index, view_for)
 
@@ -333,6 +333,14 @@ def blur_half(screen, v, sigma, kernel: int, thr, plane: bool):
     return dr.select(screen.valid & (sigma > 0), up, v)
 
 
+def _hit_depth(view):
+    """The map's linear depth z where the texel hit something, else +inf (evaluated)."""
+    hit = mi.Bool(np.ascontiguousarray(view.hit, bool).ravel())
+    zi = dr.select(hit, view.dr("z"), dr.inf)
+    dr.eval(zi)
+    return zi
+
+
 def min_filter_map(view, r):
     """The min filter of ``view``'s linear depth (module docstring, step 3) as a flat ``mi.Float``
     of F × Nl × Nl low-resolution texels (face, row, column), Nl = ⌈N/B⌉, B =
@@ -344,12 +352,7 @@ def min_filter_map(view, r):
     B = MIN_FILTER_DOWNSAMPLE
     F, N = view.nfaces, view.res
     Nl = -(-N // B)
-    if "z_min_filter" not in view._dr:            # z where the texel hit something, else +inf
-        hit = mi.Bool(np.ascontiguousarray(view.hit, bool).ravel())
-        zi = dr.select(hit, view.dr("z"), dr.inf)
-        dr.eval(zi)
-        view._dr["z_min_filter"] = zi
-    z = view._dr["z_min_filter"]
+    z = view.derived("z_min_filter", _hit_depth)
     n_o, nl_o = dr.opaque(mi.Int32, N), dr.opaque(mi.Int32, Nl)
     r_o = dr.opaque(mi.Int32, min(max(int(r), 0), Nl))    # r ≥ Nl − 1 already spans a whole row
     idx = dr.arange(mi.Int32, F * Nl * Nl)
@@ -413,8 +416,8 @@ class SSSS(ShadowMapTechnique):
                 view.dr(name)
             g = receiver_plane_gradient(view, rec, rec["ng"])
             nb = int(values["blocker_samples"])
-            px, py = _pattern_arrays(SEARCH_SETS[nb])
-            cnt, zsum = _search_loop(view, rec, g, ctx.bias, w_search, px, py, nb)
+            px, py = pattern_arrays(SEARCH_SETS[nb])
+            cnt, zsum = search_loop(view, rec, g, ctx.bias, w_search, px, py, nb)
             found = act & (cnt > 0.0)
             z_b = dr.select(found, zsum / dr.maximum(cnt, 1e-20), zr)
         else:
