@@ -35,7 +35,7 @@ from .render.gbuffer import vec_numpy
 from .render.shading import compose
 from .report import build
 from .report.frames import build_frames
-from .report.images import cascade_colours, emitter_pixels, tile_colours
+from .report.images import emitter_pixels
 from .report.lights import light_info
 from .io.outdir import claim_dir
 from .scene import load
@@ -303,51 +303,30 @@ def technique_metrics(frame, truth, result) -> tuple[dict, dict, dict]:
     m = compare_shaded(shaded, truth.shaded, penumbra=pen, valid=mask)
     m.update(pooled)
     imgs = {"shaded": shaded, "vis": vis_imgs}
-    cascades = {l.name: cascade_colours(result.aovs[f"{l.name}.cascade"], result.aovs.get(f"{l.name}.blend_weight"),
-                                        lights[l.name][0]) / 255.0
-                for l in frame.lights if f"{l.name}.cascade" in result.aovs}
-    if cascades:                              # csm's cascade AOV, coloured as [Buljan 2020, Slika 4.3/4.5]
-        imgs["cascade"] = cascades
-    aliasing = {l.name: result.aovs[f"{l.name}.aliasing"] for l in frame.lights if f"{l.name}.aliasing" in result.aovs}
-    if aliasing:                              # texels per pixel, [Buljan 2020, §2.5]: shown as a heat map
-        imgs["aliasing"] = aliasing
-    imgs.update(virtual_map_images(frame, result, mask, {ln: x[0] for ln, x in lights.items()}))
+    t = result.technique
+    if t is not None and t.panels:            # the family's own report images, built from its AOVs
+        extra = t.report_images(frame, result, mask, {ln: x[0] for ln, x in lights.items()})
+        if extra:
+            imgs.update(extra)
+            imgs["panels"] = t.panels
     return m, per_light, imgs
-
-
-def virtual_map_images(frame, result, mask, vis) -> dict:
-    """The report images of vtsm/fvsm's AOVs [Giegl 2007, §4]: {"tile": {light: H×W×3 colours in
-    [0, 1]} (``images.tile_colours`` × visibility, with the SMTG grid of the ``cell`` AOV on the
-    surface pixels ``mask``), "demand_x", "demand_y", "provided_x", "provided_y": {light: H×W log₂
-    levels, −1 off the surface (and, for provided, where no tile wrote the pixel)}}; empty for
-    other techniques."""
-    out = {}
-    for l in frame.lights:
-        a = {k: result.aovs[f"{l.name}.{k}"] for k in ("tile", "cell", "demand_x", "demand_y", "provided_x",
-                                                       "provided_y") if f"{l.name}.{k}" in result.aovs}
-        if "tile" not in a:
-            continue
-        cell = np.where(mask, a["cell"], -1) if "cell" in a else None
-        out.setdefault("tile", {})[l.name] = tile_colours(a["tile"], cell, vis[l.name]) / 255.0
-        has_tile = mask & (a["tile"] >= 0)
-        for k in ("demand_x", "demand_y", "provided_x", "provided_y"):
-            if k in a:
-                out.setdefault(k, {})[l.name] = np.where(has_tile if k.startswith("provided") else mask, a[k], -1.0)
-    return out
 
 
 def error_bands(frame, truth, result) -> dict:
     """Per light: the visibility error by distance band from the camera
-    (:func:`shadowlab.metrics.bands.by_distance`) and, for a technique with a ``cascade`` AOV, by
-    cascade (:func:`~shadowlab.metrics.bands.by_label`): {light: {"distance": rows, "cascade": rows}}."""
+    (:func:`shadowlab.metrics.bands.by_distance`) and, for each label AOV the technique declares
+    (``Technique.band_aovs``), by label (:func:`~shadowlab.metrics.bands.by_label`):
+    {light: {"distance": rows, <label AOV>: rows}}."""
+    labels = result.technique.band_aovs if result.technique is not None else ()
     out = {}
     for l in frame.lights:
         v = frame.image(result.visibility[l.name])
         tv = truth.lights[l.name].V
         valid = truth.mask & frame.lit_mask(l.name)
         d = {"distance": by_distance(v, tv, truth.view_depth, valid)}
-        if f"{l.name}.cascade" in result.aovs:
-            d["cascade"] = by_label(v, tv, result.aovs[f"{l.name}.cascade"], valid)
+        for k in labels:
+            if f"{l.name}.{k}" in result.aovs:
+                d[k] = by_label(v, tv, result.aovs[f"{l.name}.{k}"], valid)
         out[l.name] = d
     return out
 

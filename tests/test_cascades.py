@@ -333,7 +333,7 @@ def test_the_report_colours_the_cascades(outdoor, tmp_path):
     cas = np.zeros((N, N, 3))
     cas[:, : N // 2, 0] = 1.0
     cas[:, N // 2:, 2] = 1.0
-    run["images"]["techniques"]["pcf"]["cascade"] = {"key": cas}
+    run["images"]["techniques"]["pcf"].update(cascade={"key": cas}, panels=base.get("csm").panels)
     index = build(tmp_path / "rep", run)
     html = index.read_text()
     pngs = [p for p in (tmp_path / "rep" / "img").iterdir() if "cascade" in p.name]

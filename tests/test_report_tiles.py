@@ -19,8 +19,9 @@ from test_report import N, make_run, parse_png, png_size
 
 from shadowlab.errors import InputError
 from shadowlab.report import build
-from shadowlab.report.images import (TILE_COLOURS, cell_edges, level_heatmap, level_range, tile_colours,
-                                     undersampling, undersampling_heatmap)
+from shadowlab.report.images import level_heatmap, level_range, undersampling_heatmap
+from shadowlab.techniques import get
+from shadowlab.techniques.virtual_maps import TILE_COLOURS, cell_edges, tile_colours, undersampling
 
 ROOT = Path(__file__).resolve().parents[1]
 GREY = [128, 128, 128]
@@ -101,7 +102,7 @@ def test_demand_and_undersampling_heat_maps():
 
 
 def _tile_run() -> tuple[dict, dict]:
-    """make_run() with fvsm-style AOV images for pcf's light "key" (none for "fill" or pcss)."""
+    """make_run() with fvsm's report images and panels for pcf's light "key" (none for "fill" or pcss)."""
     run = make_run()
     y, x = np.mgrid[0:N, 0:N]
     cell = (y // 16) * 4 + x // 16
@@ -109,8 +110,9 @@ def _tile_run() -> tuple[dict, dict]:
     rgb = tile_colours(tile, cell, run["images"]["techniques"]["pcf"]["vis"]["key"]) / 255.0
     demand = np.where(x < 8, -1.0, 4.0 + y // 8)
     provided = np.where(x < 8, -1.0, np.full((N, N), 8.0))
+    under = {ax: np.nan_to_num(undersampling(d, provided), nan=-1.0) for ax, d in (("x", demand), ("y", demand + 1))}
     aovs = {"tile": {"key": rgb}, "demand_x": {"key": demand}, "demand_y": {"key": demand + 1},
-            "provided_x": {"key": provided}, "provided_y": {"key": provided}}
+            "under_x": {"key": under["x"]}, "under_y": {"key": under["y"]}, "panels": get("fvsm").panels}
     run["images"]["techniques"]["pcf"].update(aovs)
     return run, {"rgb": rgb, "demand": demand, "provided": provided}
 
@@ -148,8 +150,8 @@ def test_the_html_page_shows_the_tile_demand_and_undersampling_images(tmp_path):
      "run.images.techniques.pcf.tile.key"),
     (lambda r: r["images"]["techniques"]["pcf"]["demand_x"]["key"].__setitem__((2, 2), np.nan),
      "run.images.techniques.pcf.demand_x.key"),
-    (lambda r: r["images"]["techniques"]["pcf"].__setitem__("provided_y", [1, 2]),
-     "run.images.techniques.pcf.provided_y"),
+    (lambda r: r["images"]["techniques"]["pcf"].__setitem__("under_y", [1, 2]),
+     "run.images.techniques.pcf.under_y"),
 ])
 def test_bad_tile_images_raise_naming_the_key_and_write_nothing(tmp_path, breaker, key):
     run, _ = _tile_run()

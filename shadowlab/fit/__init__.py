@@ -19,6 +19,6 @@ filter sizes) fitted against the scene's Mitsuba ground truth.
 >>> from shadowlab.fit import fit, Budget   # fit("parallel_planes", "pcss", out="reports/fit/pp")
 """
 
-from .run import DEFAULT_PARAMS, Budget, default_params, fit
+from .run import Budget, default_params, fit
 
-__all__ = ["fit", "Budget", "DEFAULT_PARAMS", "default_params"]
+__all__ = ["fit", "Budget", "default_params"]

@@ -106,7 +106,8 @@ def from_dict(data, path: str = "<preset>") -> Preset:
                 raise InputError(f"preset {path}: {e}") from None
         values[tech] = vals
     if not values:
-        raise InputError(f"preset {path}: it names no technique; expected e.g. [pcss] light_size = 0.8")
+        raise InputError(f"preset {path}: it names no technique; expected a table per technique, "
+                         "[TECHNIQUE] PARAM = VALUE (`shadowlab techniques` lists them and their parameters)")
     return Preset(name=name.strip(), values=values, path=str(path), description=str(desc), meta=meta)
 
 

@@ -27,16 +27,6 @@ from . import search as S
 from .objective import DIFFERENTIABLE_LOSSES, KernelCounter, Objective, check_loss
 from .parts import Kernels, Part, PartsObjective
 
-#: parameters ``--all`` (and ``fit`` without ``--params``) fits for techniques without
-#: differentiable parameters; every other technique fits its differentiable parameters
-DEFAULT_PARAMS = {"hard": ("slope_scaled_depth_bias", "depth_bias"), "pcf": ("kernel", "softness")}
-
-#: the loss a technique is fitted with when ``--loss`` is not given (else ``rmse_penumbra``):
-#: ``hard``'s biases trade acne in the lit area against Peter Panning at contacts, and the
-#: penumbra mask sees neither (fitted there, the slope bias runs negative for a 0.5 % gain)
-DEFAULT_LOSS = {"hard": "rmse", "vtsm": "rmse", "fvsm": "rmse"}   # the virtual maps apply hard's test
-
-
 #: the ``compare`` metric that measures what each loss measures, over the same pixels (the shaded
 #: image where the loss reads visibility: what ``compare`` reports): a fit may not make it worse
 #: than at its start. The fitted values are kept only if it does not rise, else the fit ends at its
@@ -85,7 +75,9 @@ def _worse(after, before) -> bool:
 
 
 def default_loss(tech_name: str) -> str:
-    return DEFAULT_LOSS.get(tech_name, "rmse_penumbra")
+    """The loss a technique is fitted with when ``--loss`` is not given: its declared
+    :attr:`~shadowlab.techniques.base.Technique.fit_loss` (checked against the losses)."""
+    return check_loss(tbase.get(tech_name).fit_loss)
 
 
 @dataclass
@@ -109,15 +101,9 @@ class Budget:
 
 
 def default_params(tech, values: dict | None = None) -> tuple:
-    """The parameters fitted when ``--params`` is not given: :data:`DEFAULT_PARAMS`, else the
-    differentiable ones; a technique that composes another (``csm`` and its filter) says which
-    through ``fit_params(values, default_params)`` (its own continuous parameters, searched
-    without gradients, and its filter's defaults)."""
-    if values is not None and hasattr(tech, "fit_params"):
-        return tuple(tech.fit_params(values, default_params))
-    if tech.name in DEFAULT_PARAMS:
-        return DEFAULT_PARAMS[tech.name]
-    return tuple(p.name for p in tech.params if p.differentiable)
+    """The parameters fitted when ``--params`` is not given: what the technique declares
+    (:meth:`~shadowlab.techniques.base.Technique.fit_params`) for ``values`` (default: its defaults)."""
+    return tuple(tech.fit_params(values if values is not None else tech.resolve({})))
 
 
 def parse_params(csv) -> list | None:
@@ -161,22 +147,17 @@ def parse_ranges(items, techniques: list[str]) -> dict:
 
 def reference_value(tech, name: str, value, frame):
     """The value a window is centred on and a "from the scene" default replaced by: the value
-    itself, except ``resolution`` 0 (= the lights' own maps), which becomes the largest map.
-    (Light sizes need no rule: ``light_scale`` multiplies each light's own size, so 1 is the
-    scene's lights, one scale for all of them.)"""
-    if name == "resolution" and tech.param(name).kind == "int" and tech.param(name).lo == 0 and int(value) == 0:
-        return int(max(l.shadow_map for l in frame.lights))
-    return value
+    itself, or what the parameter's :attr:`~shadowlab.techniques.base.Param.from_scene` sentinel
+    stands for on ``frame``. (Light sizes need no rule: ``light_scale`` multiplies each light's
+    own size, so 1 is the scene's lights, one scale for all of them.)"""
+    return tech.param(name).scene_value(value, frame)
 
 
 def scene_floor(tech, name: str, ref):
-    """The lower end of the window of a parameter whose 0 means "from the scene": a fitted value
-    must not become that 0 (``resolution``: 64)."""
-    if name == "resolution":
-        p = tech.param(name)
-        if p.kind == "int" and p.lo == 0:
-            return 64
-    return None
+    """The lower end of the window of a parameter with a "from the scene" sentinel: a fitted
+    value must not become that sentinel (its :class:`~shadowlab.techniques.base.FromScene` floor)."""
+    fs = tech.param(name).from_scene
+    return None if fs is None else fs.floor
 
 
 def _f32(x):

@@ -22,9 +22,11 @@ import numpy as np
 
 from shadowlab.errors import InputError
 
-__all__ = ["srgb_oetf", "to_srgb8", "encode_png", "write_png"]
+__all__ = ["srgb_oetf", "to_srgb8", "encode_png", "write_png", "NO_DATA"]
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: the colour of "no data" (no surface, no cascade, no tile: −1 or NaN) in every preview image
+NO_DATA = np.array([128, 128, 128], np.uint8)
 _COLOR_TYPE = {1: 0, 3: 2, 4: 6}  # channels -> PNG colour type (grey, RGB, RGBA)
 
 

@@ -6,7 +6,7 @@ look at than read in the metrics table.
 * :func:`scatter_chart`: one point per technique, error against run time (log axis when the
   times span more than a factor 20);
 * :func:`line_chart`: one line per technique over ordered categories (the visibility error by
-  distance band from the camera, or by cascade, :func:`shadowlab.report.html.band_tables`).
+  distance band from the camera, or by a label AOV, :func:`band_kinds`).
 
 Missing values (None, NaN) are left out of a chart and listed as "n/a". Every mark has an SVG
 ``<title>`` (a tooltip with its exact value). Colours: a fixed categorical palette (Tableau 10),
@@ -242,12 +242,26 @@ def _band_label(r) -> str:
     return f"≥{float(r['lo']):g}" if not _ok(hi) else f"{float(r['lo']):g}–{float(hi):g}"
 
 
+def band_kinds(d) -> list[tuple[str, str, str]]:
+    """(kind, label, column head) of one light's error bands ``d`` (see
+    :func:`shadowlab.pipeline.error_bands`): "distance" first, then each label AOV a technique
+    breaks its error down by, in the order it gives them.
+
+    >>> band_kinds({"distance": [], "split": []})
+    [('distance', 'distance from the camera (m)', 'distance (m)'), ('split', 'split (−1: none)', 'split')]
+    """
+    return [("distance", "distance from the camera (m)", "distance (m)")] + \
+        [(k, f"{k} (−1: none)", k) for k in d if k != "distance"]
+
+
 def _band_lines(techs, lights) -> list[str]:
-    """Visibility RMSE by distance band (and by cascade), a line per technique, per light."""
+    """Visibility RMSE by distance band (and by each label AOV a technique breaks its error down
+    by), a line per technique, per light."""
     out = []
     names = list(techs)
     for ln in lights:
-        for kind, xlabel in (("distance", "distance from the camera (m)"), ("cascade", "cascade (−1: none)")):
+        kinds = {k: label for n in names for k, label, _ in band_kinds((techs[n].get("bands") or {}).get(ln, {}))}
+        for kind, xlabel in ({"distance": "distance from the camera (m)"} | kinds).items():
             rows = {n: {_band_label(r): r.get("rmse") for r in ((techs[n].get("bands") or {}).get(ln, {}).get(kind) or [])}
                     for n in names}
             rows = {n: d for n, d in rows.items() if d}
@@ -263,7 +277,7 @@ def _band_lines(techs, lights) -> list[str]:
 
 def run_charts(run) -> str:
     """The charts section of a report (HTML with inline SVG): per-light bars, error against run
-    time and, where the techniques report them, the error by distance band and by cascade.
+    time and, where the techniques report them, the error by distance band and by label.
     Empty for a run without techniques."""
     techs, lights = run["techniques"], list(run["lights"])
     if not techs:

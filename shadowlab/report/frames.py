@@ -15,7 +15,7 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
-from shadowlab.report.html import _fmt, to_jsonable
+from shadowlab.report.html import fmt_value, to_jsonable
 from shadowlab.io.outdir import MARKER, claim_dir, inside, marker_text
 
 __all__ = ["build_frames", "frames_summary", "FRAME_METRICS"]
@@ -36,13 +36,13 @@ def _shimmer_rows(summary) -> list[tuple[str, str, str, str]]:
     if not sh:
         return rows
     for n, d in sh["techniques"].items():
-        rows.append((n, "all lights", _fmt(d["pooled"]["mean"]), _fmt(d["pooled"]["p99"])))
+        rows.append((n, "all lights", fmt_value(d["pooled"]["mean"]), fmt_value(d["pooled"]["p99"])))
         if len(d["per_light"]) > 1:
             for l, v in d["per_light"].items():
-                rows.append((n, l, _fmt(v["mean"]), _fmt(v["p99"])))
+                rows.append((n, l, fmt_value(v["mean"]), fmt_value(v["p99"])))
     t = sh["truth"]
-    rows.append(("truth", "all lights", _fmt(t["pooled"]["mean"]) if t["pooled"] else "n/a",
-                 _fmt(t["pooled"]["p99"]) if t["pooled"] else "n/a"))
+    rows.append(("truth", "all lights", fmt_value(t["pooled"]["mean"]) if t["pooled"] else "n/a",
+                 fmt_value(t["pooled"]["p99"]) if t["pooled"] else "n/a"))
     return rows
 
 
@@ -57,7 +57,7 @@ def frames_summary(summary: Mapping) -> str:
         lines += [f"## {m} per frame", "", "| technique | " + " | ".join(f"frame {f}" for f in fr) + " |",
                   "|---|" + "---:|" * len(fr)]
         for n in summary["techniques"]:
-            lines.append(f"| {n} | " + " | ".join(_fmt(_metric(summary, n, f, m)) for f in fr) + " |")
+            lines.append(f"| {n} | " + " | ".join(fmt_value(_metric(summary, n, f, m)) for f in fr) + " |")
         lines.append("")
     sh = summary.get("shimmer")
     if sh:
@@ -89,7 +89,7 @@ def _html_page(summary: Mapping) -> str:
                        else f"<th>frame {f}</th>" for f in fr)
         p.append(f"<h2>{e(m)} per frame</h2><table><tr><th>technique</th>{head}</tr>")
         for n in summary["techniques"]:
-            p.append(f"<tr><td>{e(n)}</td>" + "".join(f"<td>{_fmt(_metric(summary, n, f, m))}</td>" for f in fr)
+            p.append(f"<tr><td>{e(n)}</td>" + "".join(f"<td>{fmt_value(_metric(summary, n, f, m))}</td>" for f in fr)
                      + "</tr>")
         p.append("</table>")
     sh = summary.get("shimmer")

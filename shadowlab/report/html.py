@@ -18,7 +18,7 @@ The page, top to bottom: the gate verdict (PASS/FAIL and its checks, when the ru
 ``shadowlab ingest --gate``) and what was ingested; the metrics in two tables no wider than a
 laptop window (the key columns :data:`KEY_METRICS`, then the others); charts
 (:mod:`shadowlab.report.charts`: per-light bars, error against run time, error by distance band
-and cascade); the image comparator (:mod:`shadowlab.report.comparator`); the lights
+and by a technique's label AOVs); the image comparator (:mod:`shadowlab.report.comparator`); the lights
 (``run.light_info``, :mod:`shadowlab.report.lights`) and the ground truth; a section per technique.
 
 Building is atomic and safe: everything is validated first (bad input raises ``InputError`` and
@@ -160,13 +160,22 @@ def _check_metric_dict(d, key: str) -> None:
         _number(v, f"{key}.{m}")
 
 
-#: optional per-light AOV images of a technique (``run.images.techniques.<name>.<key>.<light>``)
-#: and their channels (0: H×W): ``cascade``: H×W×3 colours in [0, 1] (``images.cascade_colours``);
-#: ``aliasing``: texel / pixel footprint (csm); ``tile``: H×W×3 colours in [0, 1]
-#: (``images.tile_colours``, with the SMTG grid); ``demand_x``, ``demand_y``, ``provided_x``,
-#: ``provided_y``: log₂ levels of the virtual map, −1 = none ([Giegl 2007, §4.3, §4.10])
-_OPTIONAL_AOVS = {"cascade": (3,), "aliasing": (0,), "tile": (3,), "demand_x": (0,), "demand_y": (0,),
-                  "provided_x": (0,), "provided_y": (0,)}
+#: the channels (0: H×W) of a panel's images by the panel's kind (``Technique.panels``: a family's
+#: own report rows, whose images ``Technique.report_images`` builds from its AOVs)
+_PANEL_CHANNELS = {"colour": (3,), "log2_ratio": (0,), "levels": (0,), "excess_levels": (0,)}
+
+
+def _panels(d, where: str) -> tuple:
+    """The panels of one technique's images (``images.techniques.<name>.panels``), checked."""
+    panels = d.get("panels") or ()
+    if not isinstance(panels, (list, tuple)):
+        raise InputError(f"{where}.panels: expected a list of panels, got {type(panels).__name__}")
+    for i, pn in enumerate(panels):
+        if not all(hasattr(pn, a) for a in ("kind", "title", "images", "alt", "note", "legend")):
+            raise InputError(f"{where}.panels[{i}]: expected a Panel (kind, title, images, alt, note, legend)")
+        if pn.kind not in _PANEL_CHANNELS:
+            raise InputError(f"{where}.panels[{i}].kind: {pn.kind!r} is not one of {', '.join(_PANEL_CHANNELS)}")
+    return tuple(panels)
 
 
 def validate(run: Mapping, need_images: bool = True) -> dict:
@@ -229,11 +238,13 @@ def validate(run: Mapping, need_images: bool = True) -> dict:
         if extra:
             raise InputError(f"{where}.vis.{extra[0]}: {extra[0]!r} is not in run.lights {list(lights)}")
         vis = {ln: _image(_get(vis_d, ln, f"{where}.vis"), f"{where}.vis.{ln}", hw, (0, 1, 3)) for ln in lights}
-        out = {"shaded": shaded, "vis": vis}
-        for key, chans in _OPTIONAL_AOVS.items():   # optional per-light AOV images (see _OPTIONAL_AOVS)
-            if key in d:
-                a = _mapping(d[key], f"{where}.{key}")
-                out[key] = {ln: _image(a[ln], f"{where}.{key}.{ln}", hw, chans) for ln in lights if ln in a}
+        out = {"shaded": shaded, "vis": vis, "panels": _panels(d, where)}
+        for pn in out["panels"]:             # the family's per-light images (see _PANEL_CHANNELS)
+            for key in pn.keys:
+                if key in d:
+                    a = _mapping(d[key], f"{where}.{key}")
+                    out[key] = {ln: _image(a[ln], f"{where}.{key}.{ln}", hw, _PANEL_CHANNELS[pn.kind])
+                                for ln in lights if ln in a}
         return out
 
     out = {"truth": frame(_get(imgs, "truth", "run.images"), "run.images.truth")}
@@ -264,7 +275,12 @@ def higher_is_better(metric: str) -> bool:
     return metric.lower().startswith(_HIGHER_IS_BETTER_PREFIXES)
 
 
-def _fmt(v) -> str:
+def fmt_value(v) -> str:
+    """A number as the report prints it: 4 significant digits, "n/a" for None and NaN.
+
+    >>> fmt_value(0.123456), fmt_value(None), fmt_value(float("inf"))
+    ('0.1235', 'n/a', 'inf')
+    """
     if v is None:
         return _NA
     v = float(v)
@@ -302,15 +318,15 @@ def _table_cells(run: Mapping, cols=None) -> tuple[list[str], list[str], list[li
         vs = [v for v in (val(n, c) for n in names) if v is not None]
         if vs:
             best[c] = max(vs) if higher_is_better(c) else min(vs)
-    rows = [[(_fmt(val(n, c)), c in best and val(n, c) == best[c]) for c in cols] for n in names]
+    rows = [[(fmt_value(val(n, c)), c in best and val(n, c) == best[c]) for c in cols] for n in names]
     return cols, names, rows
 
 
 def _reference_line(run: Mapping) -> str:
     ref = run["reference"]
     spp = ref["spp"]
-    spp_s = str(int(spp)) if float(spp).is_integer() else _fmt(spp)
-    return f"Reference: {spp_s} spp, max standard error {_fmt(ref['max_std_error'])}"
+    spp_s = str(int(spp)) if float(spp).is_integer() else fmt_value(spp)
+    return f"Reference: {spp_s} spp, max standard error {fmt_value(ref['max_std_error'])}"
 
 
 def _md_escape(s: str) -> str:
@@ -423,14 +439,14 @@ def stats_tables(stats) -> list[tuple[str, list[str], list[list[str]]]]:
         cols += [k for k, v in st.items() if k != "maps" and _scalar_stat(v) and k not in cols]
     has_maps = any(st.get("maps") for st in lights.values())
     out = [("lights", ["light", *cols] + (["maps"] if has_maps else []),
-            [[str(ln), *[_fmt(st.get(c)) if not isinstance(st.get(c), str) else st[c] for c in cols]]
+            [[str(ln), *[fmt_value(st.get(c)) if not isinstance(st.get(c), str) else st[c] for c in cols]]
              + ([str(len(st.get("maps") or ()))] if has_maps else []) for ln, st in lights.items()])]
     if has_maps:
         mcols: list[str] = []
         for st in lights.values():
             for m in st.get("maps") or ():
                 mcols += [k for k, v in m.items() if _scalar_stat(v) and k not in mcols]
-        rows = [[str(ln), str(i), *[_fmt(m.get(c)) if not isinstance(m.get(c), str) else m[c] for c in mcols]]
+        rows = [[str(ln), str(i), *[fmt_value(m.get(c)) if not isinstance(m.get(c), str) else m[c] for c in mcols]]
                 for ln, st in lights.items() for i, m in enumerate(st.get("maps") or ())]
         out.append(("maps", ["light", "map", *mcols], rows))
     return out
@@ -440,8 +456,9 @@ _BAND_KEYS = ("pixels", "rmse", "rmse_penumbra", "leak_rate", "overdark_rate")
 
 
 def band_tables(t: Mapping) -> list[tuple[str, list[str], list[list[str]]]]:
-    """One technique's visibility error by distance band and by cascade (``t["bands"]``, see
-    :func:`shadowlab.pipeline.error_bands`) as tables ``(title, columns, rows)``, per light.
+    """One technique's visibility error by distance band and by each label AOV it declares
+    (``t["bands"]``, see :func:`shadowlab.pipeline.error_bands`) as tables ``(title, columns,
+    rows)``, per light.
 
     >>> t = {"bands": {"sun": {"distance": [{"lo": 0.0, "hi": 10.0, "pixels": 4, "rmse": 0.5, "rmse_penumbra": 0.25,
     ...                                      "leak_rate": 0.0, "overdark_rate": 0.5}]}}}
@@ -452,13 +469,12 @@ def band_tables(t: Mapping) -> list[tuple[str, list[str], list[list[str]]]]:
     """
     out = []
     for ln, d in (t.get("bands") or {}).items():
-        for kind, label, head in (("distance", "distance from the camera (m)", "distance (m)"),
-                                  ("cascade", "cascade (−1: none)", "cascade")):
+        for kind, label, head in _charts.band_kinds(d):
             rows = d.get(kind) or []
             if rows:
-                keyf = (lambda r: f"{_fmt(r['lo'])}–{_fmt(r['hi'])}") if kind == "distance" else (lambda r: str(r["label"]))
+                keyf = (lambda r: f"{fmt_value(r['lo'])}–{fmt_value(r['hi'])}") if kind == "distance" else (lambda r: str(r["label"]))
                 out.append((f"{ln}: visibility error by {label}", [head, *_BAND_KEYS],
-                            [[keyf(r), *[_fmt(r[k]) for k in _BAND_KEYS]] for r in rows]))
+                            [[keyf(r), *[fmt_value(r[k]) for k in _BAND_KEYS]] for r in rows]))
     return out
 
 
@@ -517,7 +533,7 @@ def _img_tag(fname: str, alt: str) -> str:
 
 
 def _legend(scale: float) -> str:
-    s = _fmt(scale)
+    s = fmt_value(scale)
     return (
         '<img class="cbar" src="img/colorbar.png" alt="colour scale">'
         f'<div class="ticks"><span>&minus;{s}</span><span>0</span><span>+{s}</span></div>'
@@ -525,26 +541,26 @@ def _legend(scale: float) -> str:
 
 
 def _ratio_legend(scale: float) -> str:
-    s = _fmt(scale)
+    s = fmt_value(scale)
     return ('<img class="cbar" src="img/colorbar.png" alt="colour scale">'
             f'<div class="ticks"><span>2<sup>&minus;{s}</sup></span><span>1</span><span>2<sup>{s}</sup></span></div>')
 
 
-def _level_legend(lo: int, hi: int) -> str:
-    mid = _fmt((lo + hi) / 2)
+def _level_legend(lo: int, hi: int, what: str) -> str:
+    mid = fmt_value((lo + hi) / 2)
     return ('<img class="cbar" src="img/colorbar.png" alt="colour scale">'
             f'<div class="ticks"><span>&le;{lo}</span><span>{mid}</span><span>&ge;{hi}</span></div>'
-            '<div class="ticks"><span>log₂ texels across the virtual map</span></div>')
+            f'<div class="ticks"><span>{_e(what)}</span></div>')
 
 
-def _under_legend(scale: int) -> str:
+def _under_legend(scale: int, what: str) -> str:
     return ('<img class="cbar" src="img/colorbar_pos.png" alt="colour scale">'
-            f'<div class="ticks"><span>0 (met)</span><span>{_fmt(scale / 2)}</span><span>&ge;{scale}</span></div>'
-            '<div class="ticks"><span>log₂ levels too coarse</span></div>')
+            f'<div class="ticks"><span>0 (met)</span><span>{fmt_value(scale / 2)}</span><span>&ge;{scale}</span></div>'
+            f'<div class="ticks"><span>{_e(what)}</span></div>')
 
 
 def _colour_png(rgb) -> bytes:
-    """PNG of an H×W×3 colour image in [0, 1] (the cascade and tile AOV images)."""
+    """PNG of an H×W×3 colour image in [0, 1] (a panel's colour images)."""
     return _im.encode_png(np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8))
 
 
@@ -553,58 +569,62 @@ def _axis_row(head: str, cells: list[str]) -> str:
     return f'<tr><th class="row">{head}</th>' + "".join(cells) + "<td></td>" * (3 - len(cells)) + "</tr>"
 
 
-def _tile_row(rgb, ln: str, name: str, fname: str, put) -> str:
-    """The tile image with the SMTG grid ([Giegl 2007, §4.4, §4.10])."""
-    f = put(fname.format("tile"), _colour_png(rgb))
-    return _axis_row(f"<b>{_e(ln)}</b> tiles<br>a colour per tile id (the palette repeats every "
-                     f"{len(_im.TILE_COLOURS)} ids), grey = no tile wrote the pixel, × visibility; white lines "
-                     "(where the technique has a <code>cell</code> AOV: fvsm): the SMTG grid cells "
-                     "[Giegl 2007, §4.4]",
-                     [f"<td>{_img_tag(f, f'{name} tiles {ln}')}</td>"])
+def _panel_image(pn, key: str, label: str, img, scale, ln: str, name: str, fname: str, put) -> str:
+    """One image of a panel, drawn as the panel's kind on the panel's shared ``scale``."""
+    alt = f"{name} {pn.alt} {label} {ln}" if label else f"{name} {pn.alt} {ln}"
+    if pn.kind == "colour":
+        png, legend = _colour_png(img), ""
+    elif pn.kind == "log2_ratio":
+        png = _im.encode_png(_im.signed_error_heatmap(_log2_ratio(img), scale))
+        legend = _ratio_legend(scale)
+    elif pn.kind == "levels":
+        png = _im.encode_png(_im.level_heatmap(img, lo=scale[0], hi=scale[1]))
+        legend = _level_legend(*scale, pn.legend)
+    else:                                    # excess_levels
+        png = _im.encode_png(_im.undersampling_heatmap(np.where(img >= 0, img, np.nan), scale=scale))
+        legend = _under_legend(scale, pn.legend)
+    f = put(fname.format(key), png)
+    return f"<td>{_e(label) + ': ' if label else ''}{_img_tag(f, alt)}{legend}</td>"
 
 
-def _demand_row(demand: dict, ln: str, name: str, fname: str, put) -> str:
-    """The demand per axis ({axis: levels}, [Giegl 2007, §4.3]) on one shared level range."""
-    lo, hi = _im.level_range(*demand.values())
-    cells = []
-    for a, d in demand.items():
-        f = put(fname.format(f"demand_{a}"), _im.encode_png(_im.level_heatmap(d, lo=lo, hi=hi)))
-        cells.append(f"<td>{a}: {_img_tag(f, f'{name} demand {a} {ln}')}{_level_legend(lo, hi)}</td>")
-    return _axis_row(f"<b>{_e(ln)}</b> required resolution per axis (demand L, SMTMM [Giegl 2007, §4.3]): log₂ "
-                     "texels of the virtual shadow map across it that give the pixel one texel; grey = no surface",
-                     cells)
+def _log2_ratio(a) -> np.ndarray:
+    """log₂ of a ratio image; NaN (grey) where it is not positive (none)."""
+    return np.where(a > 0, np.log2(np.maximum(a, 1e-12)), np.nan)
 
 
-def _under_row(under: dict, ln: str, name: str, fname: str, put) -> str:
-    """The undersampling per axis ({axis: max(demand − provided, 0)}, [Giegl 2007, §4.10])."""
-    _, sc = _im.level_range(*under.values(), lo=0)
-    put("colorbar_pos.png", _im.colorbar_png(signed=False))
-    cells = []
-    for a, u in under.items():
-        f = put(fname.format(f"under_{a}"), _im.encode_png(_im.undersampling_heatmap(u, scale=sc)))
-        cells.append(f"<td>{a}: {_img_tag(f, f'{name} undersampling {a} {ln}')}{_under_legend(sc)}</td>")
-    return _axis_row(f"<b>{_e(ln)}</b> undersampling per axis: max(demand − provided, 0), log₂ levels by which "
-                     "the pixel's tile is coarser than it needs [Giegl 2007, §4.10]; white (0) = the tile meets the "
-                     "pixel's demand; grey = no surface or no tile", cells)
+def _panel_scale(pn, imgs: list):
+    """The one colour scale of a panel's images for one light: None (colour), the symmetric
+    integer log₂ scale (log2_ratio), the level range (levels) or the excess scale (excess_levels)."""
+    if pn.kind == "log2_ratio":
+        return max(1.0, float(np.ceil(_im.error_scale(np.concatenate([_log2_ratio(a).reshape(1, -1) for a in imgs],
+                                                                     axis=1)))))
+    if pn.kind == "levels":
+        return _im.level_range(*imgs)
+    if pn.kind == "excess_levels":
+        return _im.level_range(*imgs, lo=0)[1]
+    return None
 
 
-def _virtual_map_rows(ti: Mapping, ln: str, name: str, fname: str, put) -> list[str]:
-    """HTML rows of a virtual map's AOVs of light ``ln`` ([Giegl 2007, §4]), those present: the
-    tile image, the demand per axis and the undersampling per axis; ``fname``: the PNG name with
-    ``{}`` for the kind; ``put`` writes a PNG and returns its name."""
-    rows = [_tile_row(ti["tile"][ln], ln, name, fname, put)] if ln in ti.get("tile", {}) else []
-    demand = {a: ti[f"demand_{a}"][ln] for a in "xy" if ln in ti.get(f"demand_{a}", {})}
-    if demand:
-        rows.append(_demand_row(demand, ln, name, fname, put))
-    under = {a: _im.undersampling(d, ti[f"provided_{a}"][ln]) for a, d in demand.items()
-             if ln in ti.get(f"provided_{a}", {})}
-    if under:
-        rows.append(_under_row(under, ln, name, fname, put))
+def _panel_rows(ti: Mapping, ln: str, name: str, fname: str, put) -> list[str]:
+    """HTML rows of the technique's panels (its family's images, ``Technique.panels``) for light
+    ``ln``, those it has images of; ``fname``: the PNG name with ``{}`` for the image's key;
+    ``put`` writes a PNG and returns its name."""
+    rows = []
+    for pn in ti.get("panels", ()):
+        have = [(k, label) for k, label in pn.images if ln in ti.get(k, {})]
+        if not have:
+            continue
+        scale = _panel_scale(pn, [ti[k][ln] for k, _ in have])
+        if pn.kind == "excess_levels":
+            put("colorbar_pos.png", _im.colorbar_png(signed=False))
+        cells = [_panel_image(pn, k, label, ti[k][ln], scale, ln, name, fname, put) for k, label in have]
+        head = f"<b>{_e(ln)}</b> {_e(pn.title)}" + (f"<br>{_e(pn.note)}" if pn.note else "")
+        rows.append(_axis_row(head, cells))
     return rows
 
 
 def _metric_line(d: Mapping) -> str:
-    return " · ".join(f"{_e(k)} {_e(_fmt(v))}" for k, v in d.items())
+    return " · ".join(f"{_e(k)} {_e(fmt_value(v))}" for k, v in d.items())
 
 
 def _table_html(run: Mapping, cols) -> str:
@@ -652,8 +672,8 @@ def _verdict(run: Mapping) -> list[str]:
         for c in sorted(checks, key=lambda c: bool(c.get("passed"))):  # failed checks first
             r, rc = ("PASS", "pass") if c.get("passed") else ("FAIL", "fail")
             p.append(f"<tr><td>{_e(c.get('gate', ''))}</td><td><code>{_e(c.get('check', ''))}</code></td>"
-                     f'<td class="{rc}">{r}</td><td>{_e(_fmt(c.get("value")))}</td>'
-                     f"<td>{_e(c.get('op', ''))} {_e(_fmt(c.get('threshold')))}</td><td>{_e(c.get('text', ''))}</td></tr>")
+                     f'<td class="{rc}">{r}</td><td>{_e(fmt_value(c.get("value")))}</td>'
+                     f"<td>{_e(c.get('op', ''))} {_e(fmt_value(c.get('threshold')))}</td><td>{_e(c.get('text', ''))}</td></tr>")
         p.append("</tbody></table></div>")
     return p
 
@@ -753,7 +773,7 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
         "<span style=\"color:#b2182b\">red = technique brighter</span>; three-channel images are compared by "
         "luminance; for each light (and for the shaded image) all techniques share one colour scale, the 99th "
         "percentile of |error| without the pixels on a light seen by the camera and their neighbours. "
-        f"Visibility: grey level = visibility. Shaded images: common exposure {_e(_fmt(exposure))} "
+        f"Visibility: grey level = visibility. Shaded images: common exposure {_e(fmt_value(exposure))} "
         "(truth 99th-percentile luminance → 0.9), sRGB.</p>"
     )
     charts = _charts.run_charts(run)
@@ -777,7 +797,7 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
         g.append(f"<td>{_img_tag(mts, 'Mitsuba mi.render')}</td>")
         g.append(f"<td>{_img_tag(merr_f, 'signed error mi.render - truth')}{_legend(mscale)}</td>")
         cmp_last.append(_cmp.item("mi.render (Mitsuba direct)", [_cmp.layer(
-            "shaded", f"img/{mts}", f"img/{truth_shaded}", f"img/{merr_f}", _fmt(mscale))], a_label="mi.render"))
+            "shaded", f"img/{mts}", f"img/{truth_shaded}", f"img/{merr_f}", fmt_value(mscale))], a_label="mi.render"))
     g.append("</tr></table>")
     g.append('<p class="note">Pixels on a light the camera sees (and their neighbours) are left out of the '
              "colour scales: mi.render shows the light's radiance there, the truth has no shading point.</p>")
@@ -793,7 +813,7 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
         tp.append(f'<h2 id="t{i}">{_e(name)} <a class="open" href="#cmp" data-cmp-item="{cmp_i}" '
                   'data-cmp-layer="0">compare</a></h2>')
         params = " ".join(f"<code>{_e(k)}={_e(json.dumps(to_jsonable(v)))}</code>" for k, v in t["params"].items())
-        tp.append(f'<p class="note">time {_e(_fmt(t["time_s"]))} s. Parameters: {params or "none"}</p>')
+        tp.append(f'<p class="note">time {_e(fmt_value(t["time_s"]))} s. Parameters: {params or "none"}</p>')
         tp.append(
             '<table class="grid"><tr><th></th><th>technique</th><th>truth</th>'
             "<th>signed error (technique − truth)</th></tr>"
@@ -805,7 +825,7 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
                 _im.encode_png(_im.signed_error_heatmap(vis_err[name][ln], vis_scale[ln])),
             )
             layers.append(_cmp.layer(f"{ln} visibility", f"img/{vf}", f"img/{truth_vis[ln]}", f"img/{ef}",
-                                     _fmt(vis_scale[ln])))
+                                     fmt_value(vis_scale[ln])))
             pl = t["per_light"].get(ln, {})
             title = (run.get("ingest") or {}).get("labels", {}).get(ln)    # ingest --label CHANNEL=TEXT
             tp.append(
@@ -815,24 +835,10 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
                 f"<td>{_img_tag(truth_vis[ln], f'truth visibility {ln}')}</td>"
                 f"<td>{_img_tag(ef, f'signed error {name} {ln}')}{_legend(vis_scale[ln])}</td></tr>"
             )
-            if ln in ti.get("cascade", {}):
-                cf = put(f"{tag}_cascade_{j}_{_slug(ln)}.png", _colour_png(ti["cascade"][ln]))
-                tp.append(f'<tr><th class="row"><b>{_e(ln)}</b> cascades<br>red, green, blue, … = cascade 0, 1, 2, …'
-                          f" (blended in the bands, × visibility)</th><td>{_img_tag(cf, f'{name} cascades {ln}')}"
-                          "</td><td></td><td></td></tr>")
-            if ln in ti.get("aliasing", {}):
-                a = ti["aliasing"][ln]
-                la = np.where(a > 0, np.log2(np.maximum(a, 1e-12)), np.nan)  # grey: no cascade
-                sc = max(1.0, float(np.ceil(_im.error_scale(la))))
-                af = put(f"{tag}_aliasing_{j}_{_slug(ln)}.png", _im.encode_png(_im.signed_error_heatmap(la, sc)))
-                tp.append(f'<tr><th class="row"><b>{_e(ln)}</b> aliasing m̃<br>shadow-map texel / pixel footprint, '
-                          "log₂: red = a texel covers several pixels (undersampled), blue = several texels per "
-                          f"pixel, grey = no cascade</th><td>{_img_tag(af, f'{name} aliasing {ln}')}{_ratio_legend(sc)}</td>"
-                          "<td></td><td></td></tr>")
-            tp += _virtual_map_rows(ti, ln, name, f"{tag}_{{}}_{j}_{_slug(ln)}.png", put)
+            tp += _panel_rows(ti, ln, name, f"{tag}_{{}}_{j}_{_slug(ln)}.png", put)
         sf = put(f"{tag}_shaded.png", _im.shaded_png(ti["shaded"], exposure))
         sef = put(f"{tag}_shaded_err.png", _im.encode_png(_im.signed_error_heatmap(shaded_err[name], shaded_scale)))
-        layers.insert(0, _cmp.layer("shaded", f"img/{sf}", f"img/{truth_shaded}", f"img/{sef}", _fmt(shaded_scale)))
+        layers.insert(0, _cmp.layer("shaded", f"img/{sf}", f"img/{truth_shaded}", f"img/{sef}", fmt_value(shaded_scale)))
         cmp_items.append(_cmp.item(name, layers))
         tp.append(
             f'<tr><th class="row"><b>shaded</b><br>{_metric_line(t["metrics"])}</th>'
@@ -885,9 +891,9 @@ def build(out_dir, run: Mapping, *, force: bool = False, protected=(), kind: str
 
     ``run`` = {"scene", "resolution": [W, H], "reference": {"spp", "max_std_error", ...},
     "lights": [names], "images": {"truth": {"shaded": H×W×3, "vis": {light: H×W}},
-    "mitsuba": H×W×3 (optional), "techniques": {name: {"shaded", "vis", optional "cascade": {light:
-    H×W×3 colours in [0, 1] of a cascade-index AOV, ``images.cascade_colours``}, optional "tile",
-    "demand_x", … (see ``_OPTIONAL_AOVS``)}}},
+    "mitsuba": H×W×3 (optional), "techniques": {name: {"shaded", "vis", optional "panels": the
+    family's report rows (``Technique.panels``) and, per image key of a panel, {light: image} (see
+    ``_PANEL_CHANNELS``; built by ``Technique.report_images``)}}},
     "techniques": {name: {"params", "time_s", "metrics", "per_light"}}, ...extra JSON keys}.
     Bad input raises ``InputError`` naming the key, before anything is written.
 
@@ -914,7 +920,9 @@ def build(out_dir, run: Mapping, *, force: bool = False, protected=(), kind: str
         md_text += "\n## Stats per light and map\n\n" + st_md
     b_md = bands_markdown(run)
     if b_md:
-        md_text += "\n## Visibility error by distance and cascade\n\n" + b_md
+        by = list(dict.fromkeys(k for t in run["techniques"].values() for d in (t.get("bands") or {}).values()
+                                for k, _, _ in _charts.band_kinds(d)))
+        md_text += f"\n## Visibility error by {' and '.join(by)}\n\n" + b_md
 
     def fill(tmp: Path) -> None:
         html_text = _render(run, imgs, tmp / "img")

@@ -8,20 +8,11 @@ Conventions
 - Visibility PNGs map visibility v ∈ [0, 1] linearly to grey level round(255 v) (no sRGB curve:
   the grey level reads as the value).
 - Shaded PNGs use one exposure per report, from ``common_exposure(truth)``, then the sRGB OETF.
-- Cascade images (``csm``'s ``cascade`` AOV): cascade 0, 1, 2 red, green, blue as [Buljan 2020,
-  Slika 4.3/4.5], then yellow, magenta, cyan, orange, violet; a blend band mixes the two cascades'
-  colours by the blend weight; points of no cascade are grey; optionally darkened by the
-  visibility, as Code A.14's visualisation (colour × shadow factor).
-- Tile images (``vtsm``/``fvsm``'s ``tile`` AOV, [Giegl 2007, §3, §4.10]): a colour per tile id from
-  a fixed palette (Kelly's colours of maximum contrast, without white, black and grey), cycling
-  over the ids (id k and k + 19 share a colour); grey where no tile wrote the pixel (−1); darkened
-  by the visibility like the cascade image; optionally the SMTG grid ([Giegl 2007, §4.4], the
-  ``cell`` AOV) as one-pixel white lines: a pixel is on a line where its right or lower neighbour
-  lies in another cell (pixels of no cell, −1, draw none).
-- Level heat maps (``fvsm``'s ``demand_x``/``demand_y``, log₂ texels across the virtual map,
-  [Giegl 2007, §4.3]): blue (low) → white → red (high) between two integer levels, the colour bar's
-  colours; the undersampling max(demand − provided, 0) white (the tile meets the demand) → red.
-  Negative levels (−1: no surface / no tile) and NaN are grey.
+- Colour images a family builds from its AOVs (``Technique.report_images``, e.g. a colour per
+  label) are shown as they are; grey (:data:`shadowlab.io.png.NO_DATA`) means "none" there too.
+- Level heat maps (log₂ levels, e.g. texels across a virtual map [Giegl 2007, §4.3]): blue (low) →
+  white → red (high) between two integer levels, the colour bar's colours; levels in excess
+  (``undersampling_heatmap``) white (0) → red. Negative levels (−1: none) and NaN are grey.
 - Pixels on a light (the camera sees a light's shape: a sphere light in view, the sun's disk) show
   the light's radiance in ``mi.render`` and in an engine's image but have no shading point in the
   truth (0); their error says nothing about shadows and would set the colour scale (±32 for a
@@ -40,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from shadowlab.errors import InputError
-from shadowlab.io.png import encode_png, to_srgb8
+from shadowlab.io.png import NO_DATA, encode_png, to_srgb8
 
 __all__ = [
     "LUMA",
@@ -52,16 +43,8 @@ __all__ = [
     "visibility_png",
     "common_exposure",
     "shaded_png",
-    "CASCADE_COLOURS",
-    "cascade_colours",
-    "cascade_png",
-    "TILE_COLOURS",
-    "tile_colours",
-    "tile_png",
-    "cell_edges",
     "level_range",
     "level_heatmap",
-    "undersampling",
     "undersampling_heatmap",
     "emitter_pixels",
     "emitter_guess",
@@ -72,7 +55,7 @@ LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries, linear
 _WHITE = np.array([255.0, 255.0, 255.0])
 _RED = np.array([178.0, 24.0, 43.0])  # ColorBrewer RdBu end points (sRGB 8-bit)
 _BLUE = np.array([33.0, 102.0, 172.0])
-_NAN_GREY = np.array([128, 128, 128], np.uint8)
+_NAN_GREY = NO_DATA
 
 
 def luminance(img) -> np.ndarray:
@@ -199,107 +182,6 @@ def shaded_png(img, exposure: float) -> bytes:
     return encode_png(to_srgb8(img, exposure))
 
 
-#: colours of cascades 0 … 7 (linear [0, 1]): red, green, blue as Slika 4.3/4.5, then more
-CASCADE_COLOURS = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 0.5, 0],
-                            [0.5, 0, 1]], np.float64)
-
-
-def cascade_colours(index, weight=None, visibility=None) -> np.ndarray:
-    """H×W×3 uint8 image of a cascade index AOV (−1 = none, grey); ``weight``: the blend weight
-    toward cascade index + 1; ``visibility``: multiplies the colour (Code A.14's visualisation).
-
-    >>> cascade_colours(np.array([[0, 1, 2, -1]]))[0].tolist()
-    [[255, 0, 0], [0, 255, 0], [0, 0, 255], [128, 128, 128]]
-    >>> cascade_colours(np.array([[0.0]]), np.array([[0.5]]))[0].tolist()
-    [[128, 128, 0]]
-    """
-    idx = np.rint(np.asarray(index, np.float64)).astype(np.int64)
-    if idx.ndim == 3 and idx.shape[2] == 1:
-        idx = idx[:, :, 0]
-    k = len(CASCADE_COLOURS)
-    a = CASCADE_COLOURS[np.clip(idx, 0, k - 1)]
-    if weight is not None:
-        w = np.clip(np.asarray(weight, np.float64).reshape(idx.shape), 0.0, 1.0)[..., None]
-        a = (1.0 - w) * a + w * CASCADE_COLOURS[np.clip(idx + 1, 0, k - 1)]
-    if visibility is not None:
-        a = a * np.clip(np.asarray(visibility, np.float64).reshape(idx.shape), 0.0, 1.0)[..., None]
-    a = np.where((idx < 0)[..., None], _NAN_GREY / 255.0, a)
-    return np.round(a * 255.0).astype(np.uint8)
-
-
-def cascade_png(index, weight=None, visibility=None) -> bytes:
-    """PNG bytes of :func:`cascade_colours`.
-
-    >>> cascade_png(np.zeros((2, 2)))[:4]
-    b'\\x89PNG'
-    """
-    return encode_png(cascade_colours(index, weight, visibility))
-
-
-#: tile colours (sRGB 8-bit): Kelly's 22 colours of maximum contrast without white, black and grey
-TILE_COLOURS = np.array([[243, 195, 0], [135, 86, 146], [243, 132, 0], [161, 202, 241], [190, 0, 50],
-                         [194, 178, 128], [0, 136, 86], [230, 143, 172], [0, 103, 165], [249, 147, 121],
-                         [96, 78, 151], [246, 166, 0], [179, 68, 108], [220, 211, 0], [136, 45, 23],
-                         [141, 182, 0], [101, 69, 34], [226, 88, 34], [43, 61, 38]], np.uint8)
-_LINE = (255, 255, 255)
-
-
-def _labels(a) -> np.ndarray:
-    """A label AOV (H×W or H×W×1, float) -> int64 H×W, −1 where negative or not finite."""
-    x = np.asarray(a, np.float64)
-    if x.ndim == 3 and x.shape[2] == 1:
-        x = x[:, :, 0]
-    if x.ndim != 2:
-        raise InputError(f"expected an H×W label image, got shape {x.shape}")
-    ok = np.isfinite(x) & (x >= -0.5)
-    return np.where(ok, np.rint(np.where(ok, x, -1.0)), -1).astype(np.int64)
-
-
-def cell_edges(cell) -> np.ndarray:
-    """bool H×W: the pixels whose right or lower neighbour lies in another SMTG cell
-    ([Giegl 2007, §4.4]); pixels of no cell (−1) draw no line and end none.
-
-    >>> cell_edges(np.array([[0, 0, 1], [2, 2, 3], [2, 2, 3]])).astype(int).tolist()
-    [[1, 1, 1], [0, 1, 0], [0, 1, 0]]
-    """
-    c = _labels(cell)
-    has = c >= 0
-    out = np.zeros(c.shape, bool)
-    out[:, :-1] |= (c[:, :-1] != c[:, 1:]) & has[:, :-1] & has[:, 1:]
-    out[:-1] |= (c[:-1] != c[1:]) & has[:-1] & has[1:]
-    return out
-
-
-def tile_colours(tile, cell=None, visibility=None, *, line=_LINE) -> np.ndarray:
-    """H×W×3 uint8 image of a tile index AOV ([Giegl 2007, §3, §4.10]): ``TILE_COLOURS[id mod 19]``,
-    grey where −1 (no tile wrote the pixel); ``visibility`` multiplies the colour (as
-    :func:`cascade_colours`); ``cell``: the SMTG cell AOV, drawn as ``line``-coloured lines where
-    it changes between neighbouring pixels (:func:`cell_edges`, [Giegl 2007, §4.4]).
-
-    >>> tile_colours(np.array([[0, 1, -1]])).tolist()
-    [[[243, 195, 0], [135, 86, 146], [128, 128, 128]]]
-    >>> tile_colours(np.array([[0, 0]]), cell=np.array([[3, 4]]), visibility=np.array([[0.5, 0.5]])).tolist()
-    [[[255, 255, 255], [122, 98, 0]]]
-    """
-    idx = _labels(tile)
-    a = TILE_COLOURS[np.maximum(idx, 0) % len(TILE_COLOURS)].astype(np.float64)
-    if visibility is not None:
-        a = a * np.clip(np.asarray(visibility, np.float64).reshape(idx.shape), 0.0, 1.0)[..., None]
-    a = np.where((idx < 0)[..., None], _NAN_GREY.astype(np.float64), a)
-    if cell is not None:
-        a = np.where(cell_edges(np.asarray(cell).reshape(idx.shape))[..., None], np.asarray(line, np.float64), a)
-    return np.round(a).astype(np.uint8)
-
-
-def tile_png(tile, cell=None, visibility=None, *, line=_LINE) -> bytes:
-    """PNG bytes of :func:`tile_colours`.
-
-    >>> tile_png(np.zeros((2, 2)))[:4]
-    b'\\x89PNG'
-    """
-    return encode_png(tile_colours(tile, cell, visibility, line=line))
-
-
 def _levels(a) -> np.ndarray:
     """Float H×W levels with NaN where negative (−1: none) or not finite."""
     x = np.asarray(a, np.float64)
@@ -336,18 +218,6 @@ def level_heatmap(level, *, lo: float, hi: float) -> np.ndarray:
         raise InputError(f"level_heatmap: expected hi > lo, got lo={lo}, hi={hi}")
     t = 2.0 * (_levels(level) - lo) / (hi - lo) - 1.0
     return signed_error_heatmap(t, scale=1.0)
-
-
-def undersampling(demand, provided) -> np.ndarray:
-    """Per pixel max(demand − provided, 0) in log₂ levels ([Giegl 2007, §4.3, §4.10]): 0 = the
-    pixel's tile gives at least the virtual resolution it needs, k = 2^k times too coarse; NaN
-    where either level is missing (−1 or NaN).
-
-    >>> undersampling(np.array([[12.0, 9.0, 12.0]]), np.array([[10.0, 10.0, -1.0]])).tolist()
-    [[2.0, 0.0, nan]]
-    """
-    d, p = _levels(demand), _levels(np.asarray(provided, np.float64).reshape(np.shape(demand)))
-    return np.maximum(d - p, 0.0)
 
 
 def undersampling_heatmap(under, *, scale: float) -> np.ndarray:

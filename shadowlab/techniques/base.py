@@ -18,22 +18,44 @@ import math
 import pkgutil
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Callable
 
 import drjit as dr
 import mitsuba as mi
 
 from ..errors import InputError
 
+#: the kinds of value a :class:`Param` holds (checked when a Param is made)
 KINDS = ("float", "int", "bool", "choice")
+
+
+@dataclass(frozen=True)
+class FromScene:
+    """A parameter value that means "the scene's own" instead of a number, e.g. ``resolution`` 0:
+    each light's ``shadow_map``. ``value`` is that sentinel; ``of(frame)`` the one value it stands
+    for where one number is needed (the start and window centre of a fit); ``floor`` the least
+    value a search may reach (the sentinel is a rule, not a value to fit). ``of`` is a
+    module-level function, so a Param stays picklable."""
+
+    value: object
+    of: Callable
+    floor: object = None
 
 
 @dataclass(frozen=True)
 class Param:
     """One parameter of a technique.
 
-    ``lo``/``hi`` bound float and int values (inclusive); ``choices`` lists the values of a
-    ``choice``; ``differentiable`` says whether fitting may use gradients (continuous and
-    used smoothly by the technique's filter); ``source`` names the document and section.
+    ``kind`` is one of :data:`KINDS`; ``lo``/``hi`` bound float and int values (inclusive);
+    ``choices`` lists the values of a ``choice``; ``differentiable`` says whether fitting may
+    use gradients (continuous and used smoothly by the technique's filter); ``source`` names
+    the document and section; ``from_scene``: the value, if any, that means "the scene's own"
+    (:class:`FromScene`).
+
+    >>> Param("bias", 0.1, "number")
+    Traceback (most recent call last):
+    ...
+    ValueError: Param bias: kind 'number' is not one of float, int, bool, choice
     """
 
     name: str
@@ -46,6 +68,18 @@ class Param:
     choices: tuple = ()
     source: str = ""
     doc: str = ""
+    from_scene: FromScene | None = None
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"Param {self.name}: kind {self.kind!r} is not one of {', '.join(KINDS)}")
+        if self.kind == "choice" and not self.choices:
+            raise ValueError(f"Param {self.name}: a choice needs its choices")
+
+    def scene_value(self, value, frame):
+        """``value``, or what it stands for on ``frame`` when it is the :attr:`from_scene` sentinel."""
+        fs = self.from_scene
+        return fs.of(frame) if fs is not None and value == fs.value else value
 
     def parse(self, value, technique: str = "?"):
         """Validate and convert ``value`` (a Python value or a CLI string)."""
@@ -101,6 +135,41 @@ class ShadowResult:
     aovs: dict = field(default_factory=dict)
     stats: dict = field(default_factory=dict)
     colour: dict = field(default_factory=dict)
+    #: the :class:`Technique` that rendered it (its report images and error bands read the AOVs)
+    technique: object = None
+
+
+#: how the report draws the images of a :class:`Panel` (kinds of picture, not families):
+#: ``colour``: H×W×3 colours in [0, 1], shown as they are; ``log2_ratio``: H×W ratio (≤ 0: none,
+#: grey) shown as a signed heat map of its log₂ on a symmetric integer scale; ``levels``: H×W
+#: log₂ levels (−1: none, grey), blue → white → red over one range shared by the panel's images;
+#: ``excess_levels``: H×W levels ≥ 0 (−1: none, grey), white (0) → red, on one shared scale
+PANEL_KINDS = ("colour", "log2_ratio", "levels", "excess_levels")
+
+
+@dataclass(frozen=True)
+class Panel:
+    """One row a family adds to its section of the report, per light: the images
+    ``images`` = ((key, label), ...) that :meth:`Technique.report_images` builds from the
+    family's AOVs, drawn as ``kind`` (:data:`PANEL_KINDS`). The row's header is the light's name,
+    ``title`` and, on a second line, ``note``; a cell with several images prefixes each with its
+    label; each image's alt text is "<technique> ``alt`` [label] <light>"; its PNG is named after
+    its key; ``legend``: what the colour bar's values are (heat-map kinds)."""
+
+    kind: str
+    title: str
+    images: tuple
+    alt: str
+    note: str = ""
+    legend: str = ""
+
+    def __post_init__(self):
+        if self.kind not in PANEL_KINDS:
+            raise ValueError(f"Panel {self.title!r}: kind {self.kind!r} is not one of {', '.join(PANEL_KINDS)}")
+
+    @property
+    def keys(self) -> tuple:
+        return tuple(k for k, _ in self.images)
 
 
 @dataclass
@@ -212,6 +281,13 @@ class Technique:
     source: str = ""
     params: tuple = ()
     summary: str = ""
+    #: the loss ``shadowlab fit`` uses when none is given (a loss of :mod:`shadowlab.fit.objective`)
+    fit_loss: str = "rmse_penumbra"
+    #: the rows the family adds to its report section (built from its AOVs by :meth:`report_images`)
+    panels: tuple = ()
+    #: label AOVs (an integer per point, −1 = none) by whose labels ``compare`` breaks the visibility
+    #: error down, beside the distance bands (``pipeline.error_bands``)
+    band_aovs: tuple = ()
 
     def param(self, name: str) -> Param:
         for p in self.params:
@@ -253,6 +329,17 @@ class Technique:
         :meth:`render` refuses them with that text (InputError)."""
         return None
 
+
+    def fit_params(self, values: dict) -> tuple:
+        """The parameters ``shadowlab fit`` searches when none are named, for the resolved
+        ``values``: the differentiable ones (a family without any says which to search)."""
+        return tuple(p.name for p in self.params if p.differentiable)
+
+    def report_images(self, frame, result: "ShadowResult", mask, vis: dict) -> dict:
+        """The images of :attr:`panels`, built from ``result``'s AOVs: {key: {light: H×W[×3]}},
+        only for the lights that have them. ``mask``: H×W bool, the surface pixels; ``vis``:
+        {light: H×W visibility image}. None by default."""
+        return {}
 
     # -- the family's part ---------------------------------------------------------------------
     def prepare(self, frame, values: dict, ctx: RenderContext) -> None:
@@ -321,7 +408,7 @@ class Technique:
         for k, (tot, cnt) in pools.items():
             stats[k]["all"] = tot / cnt if cnt else 0.0
         stats["lights"] = lights
-        return ShadowResult(visibility=vis, aovs=aovs, stats=stats, colour=colour)
+        return ShadowResult(visibility=vis, aovs=aovs, stats=stats, colour=colour, technique=self)
 
 
 
@@ -345,7 +432,11 @@ def names() -> list[str]:
 
 
 def get(name: str) -> Technique:
-    _load_all()
+    """The registered technique ``name``; the technique modules are imported only when it is not
+    registered yet, so a family that composes others (``import``s their modules, then asks for
+    them here while its own module is being imported) gets them without a circular import."""
+    if name not in _REGISTRY:
+        _load_all()
     if name not in _REGISTRY:
         raise InputError(f"unknown technique {name!r}; registered techniques: {', '.join(names())}")
     return _REGISTRY[name]

@@ -65,7 +65,7 @@ back; a loop over the ≤ 8 cascades, no loop over points.
 
 AOVs per light: ``cascade`` (index of the selected cascade, −1 unshadowed; ``blend_weight`` of the
 next one: the report colours them red, green, blue, … as Slika 4.3/4.5,
-:func:`shadowlab.report.images.cascade_colours`), ``blend_weight`` (w, 0 outside a band),
+:func:`cascade_colours`), ``blend_weight`` (w, 0 outside a band),
 ``texel`` (world size of the selected cascade's texel, blended by w) and ``aliasing``: the
 aliasing measure m̃ from the actual maps, texel world size / the pixel's world footprint at the
 point's view depth (:meth:`~shadowlab.render.camera.Camera.pixel_footprint`), i.e. screen pixels
@@ -102,9 +102,11 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import InputError
+from ..io.png import NO_DATA
 from ..render.lightview import FrustumSlice, SceneSphere
 from . import esm, evsm, msm, pcf, pcss, shadow_map, vsm  # noqa: F401  (register the filter families)
-from .base import _REGISTRY, LightResult, Param, needs_mitsuba_geometry, RenderContext, Technique, param_table_markdown, register
+from .base import (LightResult, Panel, Param, RenderContext, Technique, get, needs_mitsuba_geometry, param_table_markdown,
+                   register)
 from .shadow_map import (BIAS_PARAMS, Points, SubFrame, check_map_params, map_entry, map_layers, map_settings,
                          map_stats)
 
@@ -197,18 +199,49 @@ def select_map(insides):
 
 
 # ----------------------------------------------------------------------------------------------
+# the report's cascade image
+
+#: colours of cascades 0 … 7 (linear [0, 1]): red, green, blue as Slika 4.3/4.5, then more
+CASCADE_COLOURS = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 0.5, 0],
+                            [0.5, 0, 1]], np.float64)
+
+
+def cascade_colours(index, weight=None, visibility=None) -> np.ndarray:
+    """H×W×3 uint8 image of a cascade index AOV (−1 = none, grey); ``weight``: the blend weight
+    toward cascade index + 1; ``visibility``: multiplies the colour (Code A.14's visualisation).
+
+    >>> cascade_colours(np.array([[0, 1, 2, -1]]))[0].tolist()
+    [[255, 0, 0], [0, 255, 0], [0, 0, 255], [128, 128, 128]]
+    >>> cascade_colours(np.array([[0.0]]), np.array([[0.5]]))[0].tolist()
+    [[128, 128, 0]]
+    """
+    idx = np.rint(np.asarray(index, np.float64)).astype(np.int64)
+    if idx.ndim == 3 and idx.shape[2] == 1:
+        idx = idx[:, :, 0]
+    k = len(CASCADE_COLOURS)
+    a = CASCADE_COLOURS[np.clip(idx, 0, k - 1)]
+    if weight is not None:
+        w = np.clip(np.asarray(weight, np.float64).reshape(idx.shape), 0.0, 1.0)[..., None]
+        a = (1.0 - w) * a + w * CASCADE_COLOURS[np.clip(idx + 1, 0, k - 1)]
+    if visibility is not None:
+        a = a * np.clip(np.asarray(visibility, np.float64).reshape(idx.shape), 0.0, 1.0)[..., None]
+    a = np.where((idx < 0)[..., None], NO_DATA / 255.0, a)
+    return np.round(a * 255.0).astype(np.uint8)
+
+
+# ----------------------------------------------------------------------------------------------
 # parameters
 
 def family(name: str):
     """The registered technique of filter family ``name`` (``hard``, ``pcf``, …)."""
-    return _REGISTRY[name]
+    return get(name)
 
 
 def _family_params(family: str) -> tuple:
     """The family's own declarations (not the shared BIAS_PARAMS) under the ``family_`` prefix."""
     shared = {p.name for p in BIAS_PARAMS}
     out = []
-    for p in _REGISTRY[family].params:
+    for p in get(family).params:
         if p.name in shared:
             continue
         out.append(replace(p, name=f"{family}_{p.name}",
@@ -266,6 +299,28 @@ class CSM(Technique):
                "map of the directional light per slice (sphere or box fit, whole-texel snapping), interval or "
                "map-based selection with blend bands, any shadow-map filter per cascade")
     params = CSM_PARAMS + BIAS_PARAMS + tuple(q for f in FILTERS[1:] for q in _family_params(f))
+    panels = (
+        Panel("colour", "cascades", (("cascade", ""),), "cascades",
+              note="red, green, blue, … = cascade 0, 1, 2, … (blended in the bands, × visibility)"),
+        Panel("log2_ratio", "aliasing m̃", (("aliasing", ""),), "aliasing",
+              note="shadow-map texel / pixel footprint, log₂: red = a texel covers several pixels (undersampled), "
+                   "blue = several texels per pixel, grey = no cascade"),
+    )
+    band_aovs = ("cascade",)
+
+    def report_images(self, frame, result, mask, vis):
+        """The cascade index coloured as [Buljan 2020, Slika 4.3/4.5] (:func:`cascade_colours`,
+        blended by ``blend_weight``, × visibility) and the aliasing measure m̃ ([Buljan 2020, §2.5],
+        a texel / pixel ratio, shown as a heat map of its log₂)."""
+        out = {}
+        for l in frame.lights:
+            a = result.aovs
+            if f"{l.name}.cascade" in a:
+                out.setdefault("cascade", {})[l.name] = cascade_colours(
+                    a[f"{l.name}.cascade"], a.get(f"{l.name}.blend_weight"), vis[l.name]) / 255.0
+            if f"{l.name}.aliasing" in a:
+                out.setdefault("aliasing", {})[l.name] = a[f"{l.name}.aliasing"]
+        return out
 
     # -- the scenes it renders -------------------------------------------------------------------
     def unsupported(self, spec) -> str | None:
@@ -286,12 +341,13 @@ class CSM(Technique):
         raw = {p.name: values[prefixed(fam.name, p.name)] for p in fam.params}
         return fam.resolve(raw)
 
-    def fit_params(self, values: dict, family_defaults) -> tuple:
+    def fit_params(self, values: dict) -> tuple:
         """The parameters ``shadowlab fit`` searches by default: the cascades' continuous ones
         (``split_lambda``, ``blend``, ``pull``; searched without gradients) and the chosen filter's
-        default fit parameters ``family_defaults(family technique)``, under their csm names."""
+        own default fit parameters, under their csm names."""
         fam = family(values["filter"])
-        return ("split_lambda", "blend", "pull") + tuple(prefixed(fam.name, n) for n in family_defaults(fam))
+        return ("split_lambda", "blend", "pull") + tuple(prefixed(fam.name, n)
+                                                         for n in fam.fit_params(self.family_values(values)))
 
     def prepare(self, frame, values, ctx):
         check_map_params(values, self.name)

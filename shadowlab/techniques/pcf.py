@@ -312,6 +312,10 @@ class PCF(ShadowMapTechnique):
                "2×2 bilinear taps")
     params = PCF_PARAMS + BIAS_PARAMS
 
+    def fit_params(self, values):
+        """No parameter is differentiable (taps are steps): ``fit`` searches the kernel and its softness."""
+        return ("kernel", "softness")
+
     def filter(self, view, rec, bias, values):
         pattern = values["pattern"]
         bilinear = bool(values["bilinear"])

@@ -87,10 +87,11 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import InputError
+from ..io.png import NO_DATA
 from ..render.gbuffer import vec_numpy
 from ..render.lightview import FrustumSlice, LightSquare, SceneSphere, light_frame, projection
 from ..render.tiles import Tiles, assign_tiles, cells_of, face_ndc, render_tiles, tile_groups
-from .base import _REGISTRY, LightResult, Param, needs_mitsuba_geometry, Technique, param_table_markdown, register
+from .base import LightResult, Panel, Param, Technique, get, needs_mitsuba_geometry, param_table_markdown, register
 from .cascades import CSM_PARAMS, shadow_range
 from .shadow_map import (BIAS_PARAMS, Points, SubFrame, depth_test, map_settings, opaque_bias, receiver,
                          texel_index)
@@ -467,10 +468,118 @@ def _check_tiling(values: dict, name: str) -> None:
                          "(η0 = 17, η1 = 22 in [Giegl 2007, §5])")
 
 
+# ----------------------------------------------------------------------------------------------
+# the report's images
+
+#: tile colours (sRGB 8-bit): Kelly's 22 colours of maximum contrast without white, black and grey
+TILE_COLOURS = np.array([[243, 195, 0], [135, 86, 146], [243, 132, 0], [161, 202, 241], [190, 0, 50],
+                         [194, 178, 128], [0, 136, 86], [230, 143, 172], [0, 103, 165], [249, 147, 121],
+                         [96, 78, 151], [246, 166, 0], [179, 68, 108], [220, 211, 0], [136, 45, 23],
+                         [141, 182, 0], [101, 69, 34], [226, 88, 34], [43, 61, 38]], np.uint8)
+_LINE = (255, 255, 255)
+
+
+def _labels(a) -> np.ndarray:
+    """A label AOV (H×W or H×W×1, float) -> int64 H×W, −1 where negative or not finite."""
+    x = np.asarray(a, np.float64)
+    if x.ndim == 3 and x.shape[2] == 1:
+        x = x[:, :, 0]
+    if x.ndim != 2:
+        raise InputError(f"expected an H×W label image, got shape {x.shape}")
+    ok = np.isfinite(x) & (x >= -0.5)
+    return np.where(ok, np.rint(np.where(ok, x, -1.0)), -1).astype(np.int64)
+
+
+def cell_edges(cell) -> np.ndarray:
+    """bool H×W: the pixels whose right or lower neighbour lies in another SMTG cell
+    ([Giegl 2007, §4.4]); pixels of no cell (−1) draw no line and end none.
+
+    >>> cell_edges(np.array([[0, 0, 1], [2, 2, 3], [2, 2, 3]])).astype(int).tolist()
+    [[1, 1, 1], [0, 1, 0], [0, 1, 0]]
+    """
+    c = _labels(cell)
+    has = c >= 0
+    out = np.zeros(c.shape, bool)
+    out[:, :-1] |= (c[:, :-1] != c[:, 1:]) & has[:, :-1] & has[:, 1:]
+    out[:-1] |= (c[:-1] != c[1:]) & has[:-1] & has[1:]
+    return out
+
+
+def tile_colours(tile, cell=None, visibility=None, *, line=_LINE) -> np.ndarray:
+    """H×W×3 uint8 image of a tile index AOV ([Giegl 2007, §3, §4.10]): ``TILE_COLOURS[id mod 19]``,
+    grey where −1 (no tile wrote the pixel); ``visibility`` multiplies the colour (as
+    :func:`cascade_colours`); ``cell``: the SMTG cell AOV, drawn as ``line``-coloured lines where
+    it changes between neighbouring pixels (:func:`cell_edges`, [Giegl 2007, §4.4]).
+
+    >>> tile_colours(np.array([[0, 1, -1]])).tolist()
+    [[[243, 195, 0], [135, 86, 146], [128, 128, 128]]]
+    >>> tile_colours(np.array([[0, 0]]), cell=np.array([[3, 4]]), visibility=np.array([[0.5, 0.5]])).tolist()
+    [[[255, 255, 255], [122, 98, 0]]]
+    """
+    idx = _labels(tile)
+    a = TILE_COLOURS[np.maximum(idx, 0) % len(TILE_COLOURS)].astype(np.float64)
+    if visibility is not None:
+        a = a * np.clip(np.asarray(visibility, np.float64).reshape(idx.shape), 0.0, 1.0)[..., None]
+    a = np.where((idx < 0)[..., None], NO_DATA.astype(np.float64), a)
+    if cell is not None:
+        a = np.where(cell_edges(np.asarray(cell).reshape(idx.shape))[..., None], np.asarray(line, np.float64), a)
+    return np.round(a).astype(np.uint8)
+
+
+def undersampling(demand, provided) -> np.ndarray:
+    """Per pixel max(demand − provided, 0) in log₂ levels ([Giegl 2007, §4.3, §4.10]): 0 = the
+    pixel's tile gives at least the virtual resolution it needs, k = 2^k times too coarse; NaN
+    where either level is missing (−1 or NaN).
+
+    >>> undersampling(np.array([[12.0, 9.0, 12.0]]), np.array([[10.0, 10.0, -1.0]])).tolist()
+    [[2.0, 0.0, nan]]
+    """
+    d, p = (np.where(np.isfinite(x) & (x >= 0), x, np.nan)
+            for x in (np.asarray(demand, np.float64), np.asarray(provided, np.float64).reshape(np.shape(demand))))
+    return np.maximum(d - p, 0.0)
+
+
 class VirtualMap(Technique):
     """The shared part: the focused light camera, the tiles' render and the deferred pass."""
 
     source = SOURCE
+    panels = (
+        Panel("colour", "tiles", (("tile", ""),), "tiles",
+              note=f"a colour per tile id (the palette repeats every {len(TILE_COLOURS)} ids), grey = no tile wrote "
+                   "the pixel, × visibility; white lines (where the technique has a cell AOV: fvsm): the SMTG grid "
+                   "cells [Giegl 2007, §4.4]"),
+        Panel("levels", "required resolution per axis (demand L, SMTMM [Giegl 2007, §4.3]): log₂ texels of the "
+                        "virtual shadow map across it that give the pixel one texel; grey = no surface",
+              (("demand_x", "x"), ("demand_y", "y")), "demand", legend="log₂ texels across the virtual map"),
+        Panel("excess_levels", "undersampling per axis: max(demand − provided, 0), log₂ levels by which the pixel's "
+                               "tile is coarser than it needs [Giegl 2007, §4.10]; white (0) = the tile meets the "
+                               "pixel's demand; grey = no surface or no tile",
+              (("under_x", "x"), ("under_y", "y")), "undersampling", legend="log₂ levels too coarse"),
+    )
+
+    def report_images(self, frame, result, mask, vis):
+        """[Giegl 2007, §4]: "tile": the tile colours × visibility (:func:`tile_colours`) with the
+        SMTG grid of the ``cell`` AOV on the surface pixels ``mask``; "demand_x", "demand_y": the
+        demand levels, −1 off the surface; "under_x", "under_y": :func:`undersampling` of the
+        demand and the tile's provided levels, −1 off the surface or where no tile wrote the pixel."""
+        out = {}
+        for l in frame.lights:
+            a = {k: result.aovs[f"{l.name}.{k}"] for k in ("tile", "cell", "demand_x", "demand_y", "provided_x",
+                                                           "provided_y") if f"{l.name}.{k}" in result.aovs}
+            if "tile" not in a:
+                continue
+            cell = np.where(mask, a["cell"], -1) if "cell" in a else None
+            out.setdefault("tile", {})[l.name] = tile_colours(a["tile"], cell, vis[l.name]) / 255.0
+            has_tile = mask & (a["tile"] >= 0)
+            for ax in "xy":
+                if f"demand_{ax}" not in a:
+                    continue
+                d = np.where(mask, a[f"demand_{ax}"], -1.0)
+                out.setdefault(f"demand_{ax}", {})[l.name] = d
+                if f"provided_{ax}" in a:
+                    u = undersampling(d, np.where(has_tile, a[f"provided_{ax}"], -1.0))
+                    out.setdefault(f"under_{ax}", {})[l.name] = np.where(np.isnan(u), -1.0, u)
+        return out
 
     def unsupported(self, spec) -> str | None:
         if why := needs_mitsuba_geometry(self.name, spec):
@@ -490,10 +599,15 @@ class VirtualMap(Technique):
     def prepare(self, frame, values, ctx):
         ctx.bias = opaque_bias(values)
 
-    def fit_params(self, values: dict, family_defaults) -> tuple:
+    def fit_params(self, values: dict) -> tuple:
         """``shadowlab fit``'s default parameters: ``hard``'s (the biases of the test every tile
         applies), searched without gradients."""
-        return tuple(family_defaults(_REGISTRY["hard"]))
+        return tuple(get("hard").fit_params(values))
+
+    @property
+    def fit_loss(self) -> str:
+        """``hard``'s loss: every tile applies its test."""
+        return get("hard").fit_loss
 
     def base(self, frame, light, values):
         """The virtual map's light camera (one orthographic face)."""
