@@ -286,7 +286,9 @@ def run_techniques(frame, names: list[str], params: dict) -> dict:
 
 
 def technique_metrics(frame, truth, result) -> tuple[dict, dict, dict]:
-    """(metrics, per_light, images) of one ShadowResult against the truth."""
+    """(metrics, per_light, images) of one ShadowResult against the truth. ``images``: the shaded
+    image, the visibility per light and, for a technique whose family declares ``panels``, the
+    images its ``report_images`` builds from the AOVs, with those panels (what the report draws)."""
     mask = truth.mask
     vis_imgs, lights = {}, {}
     pen = np.zeros_like(mask)

@@ -19,7 +19,9 @@ The page, top to bottom: the gate verdict (PASS/FAIL and its checks, when the ru
 laptop window (the key columns :data:`KEY_METRICS`, then the others); charts
 (:mod:`shadowlab.report.charts`: per-light bars, error against run time, error by distance band
 and by a technique's label AOVs); the image comparator (:mod:`shadowlab.report.comparator`); the lights
-(``run.light_info``, :mod:`shadowlab.report.lights`) and the ground truth; a section per technique.
+(``run.light_info``, :mod:`shadowlab.report.lights`) and the ground truth; a section per technique,
+with the rows its family adds (``images.techniques.<name>.panels``, ``Technique.panels``: images
+built from the family's AOVs, drawn here by their kind, never by family).
 
 Building is atomic and safe: everything is validated first (bad input raises ``InputError`` and
 leaves ``out_dir`` untouched), then written into a temporary sibling directory and moved into
