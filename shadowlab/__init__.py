@@ -13,8 +13,18 @@ from .libllvm import point_drjit_at_libllvm
 
 point_drjit_at_libllvm()  # before any module of the package imports Dr.Jit, which reads it on import
 
-from .api import (compare, gate_image, load_reference, load_scene, make_frame, render_technique,  # noqa: E402
-                  techniques_for, visibility)
-
 __all__ = ["compare", "gate_image", "load_reference", "load_scene", "make_frame", "render_technique", "techniques_for",
            "visibility", "__version__"]
+
+
+def __getattr__(name):
+    """The public API's functions, loaded from :mod:`shadowlab.api` on first use (PEP 562): it
+    imports Mitsuba, Dr.Jit and numpy, which ``shadowlab --help`` does not need."""
+    if name in __all__:
+        from . import api
+        return getattr(api, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

@@ -66,8 +66,6 @@ def test_help_and_usage_errors(args, rc, text):
     assert "Traceback" not in out + err
 
 
-@pytest.mark.xfail(strict=True, reason="shadowlab/__init__.py imports shadowlab.api (and with it Mitsuba, Dr.Jit, "
-                   "numpy) when the package is imported; remove this marker once it loads the API lazily")
 @pytest.mark.parametrize("args", [["--help"], ["compare", "--help"], ["compare", "contact", "--bogus"]])
 def test_help_and_usage_errors_load_no_mitsuba_or_drjit(args):
     _, heavy, _, _ = _probe(*args)

@@ -27,7 +27,9 @@ LAZY_OPTIONAL = frozenset({"matplotlib", "flip_evaluator", "colour", "tqdm"})
 # cycle (the cycle checks still see it as an edge). Each command imports what it runs inside its
 # own function, so that `shadowlab --help` and usage errors load no Mitsuba / Dr.Jit / numpy
 # (start-up time; tests/test_cli_startup.py)
-LAZY_MODULES = frozenset({"shadowlab.cli"})
+# The package root (`shadowlab/__init__.py`, a leaf of the graph) is the other: its module
+# __getattr__ loads the public API (shadowlab.api) on first use, for the same reason.
+LAZY_MODULES = frozenset({"shadowlab.cli", "shadowlab"})
 
 
 def module_name(path: Path, root: Path = ROOT) -> str:
