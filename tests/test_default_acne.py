@@ -25,9 +25,9 @@ def ball(tmp_path_factory, mitsuba_backend):
 
 
 @pytest.fixture(scope="module")
-def contact(mitsuba_backend):
+def contact(frame_of):
     import shadowlab
-    return shadowlab.make_frame(shadowlab.load_scene("contact")), shadowlab.load_reference("contact")
+    return frame_of("contact"), shadowlab.load_reference("contact")
 
 
 def _regions(frame, light):

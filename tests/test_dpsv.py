@@ -221,13 +221,11 @@ def test_classifier_marks_points_within_a_texel_of_a_planar_edge(tmp_path, mitsu
 # soft shadows
 
 @pytest.fixture(scope="module")
-def planes(mitsuba_backend):
+def planes(frame_of):
     from shadowlab.reference import store
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import load
-    scene = load("parallel_planes")
-    truth, _ = store.load(scene.spec)
-    return make_frame(scene), truth
+    frame = frame_of("parallel_planes")
+    truth, _ = store.load(frame.scene.spec)
+    return frame, truth
 
 
 def test_soft_matches_the_truth_like_pcss(planes):

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from lightview_scene import SCENE
+from scene_builder import frame_from
 from shadowlab.errors import InputError
 from shadowlab.render.lightview import FrustumSlice, SceneSphere, TileRect, light_view, projection
 
@@ -20,9 +21,7 @@ BASELINE = Path(__file__).parent / "data" / "lightview_baseline.npz"
 
 @pytest.fixture(scope="module")
 def frame(mitsuba_backend):
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import build, parse
-    return make_frame(build(parse(SCENE, "lightview.toml")), u_strata=1)
+    return frame_from(SCENE, "lightview.toml")
 
 
 def test_scene_sphere_is_the_old_map(frame):

@@ -17,6 +17,7 @@ import pytest
 
 from shadowlab.errors import InputError
 from shadowlab.techniques import get
+from scene_builder import floor, frame_from
 
 MOMENT = ("vsm", "esm", "evsm", "msm")
 
@@ -25,7 +26,7 @@ STEP = {
     "camera": {"position": [0.5, 0.75, 1.6], "target": [-0.15, 0.45, 0.0], "fov": 30, "resolution": [96, 96]},
     "lights": [{"name": "sun", "kind": "directional", "direction": [0.0, -1.0, 0.0], "up": [0.0, 0.0, 1.0],
                 "irradiance": 1.0, "shadow_map": 128}],
-    "shapes": [{"name": "floor", "type": "rectangle", "rotate": [1, 0, 0, -90], "scale": 1.0},
+    "shapes": [floor(1.0),
                {"name": "platform", "type": "cube", "translate": [-0.5, 0.2, 0.0], "scale": [0.5, 0.2, 0.6]},
                {"name": "plate", "type": "rectangle", "translate": [-0.6, 1.0, 0.0], "rotate": [1, 0, 0, 90],
                 "scale": [0.6, 0.8, 1.0]}],
@@ -35,7 +36,7 @@ SPOT = {
     "camera": {"position": [0.0, 3.0, 3.0], "target": [0.0, 0.0, 0.0], "fov": 60, "resolution": [64, 64]},
     "lights": [{"name": "s", "kind": "spot", "position": [0.3, 2.5, 0.2], "target": [0.0, 0.0, 0.0], "angle": 25.0,
                 "power": 100.0, "shadow_map": 256}],
-    "shapes": [{"name": "floor", "type": "rectangle", "rotate": [1, 0, 0, -90], "scale": 2.0},
+    "shapes": [floor(2.0),
                {"name": "box", "type": "cube", "translate": [0.0, 0.3, 0.0], "rotate": [0, 1, 0, 30], "scale": 0.3}],
 }
 #: a point light inside a ring of occluders (cube map: every face is used)
@@ -43,7 +44,7 @@ RING = {
     "name": "ring",
     "camera": {"position": [0.5, 5.0, 3.0], "target": [0.0, 0.0, 0.0], "fov": 55, "resolution": [64, 64]},
     "lights": [{"name": "p", "kind": "point", "position": [0.0, 1.2, 0.0], "power": 100.0, "shadow_map": 256}],
-    "shapes": [{"name": "floor", "type": "rectangle", "rotate": [1, 0, 0, -90], "scale": 3.0},
+    "shapes": [floor(3.0),
                {"name": "east", "type": "cube", "translate": [1.0, 0.35, 0.1], "scale": [0.12, 0.35, 0.3]},
                {"name": "west", "type": "cube", "translate": [-1.0, 0.35, -0.1], "scale": [0.12, 0.35, 0.3]},
                {"name": "north", "type": "sphere", "center": [0.1, 0.35, -1.0], "radius": 0.3},
@@ -62,17 +63,14 @@ def reduction(v, p):
 
 
 def _inline(spec):
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import build, parse
-    scene = build(parse(spec, f"{spec['name']}.toml"))
-    return scene, make_frame(scene, u_strata=1)
+    frame = frame_from(spec)
+    return frame.scene, frame
 
 
-def _builtin(name, resolution=None):
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import load
-    scene = load(name, resolution=resolution)
-    return scene, make_frame(scene, u_strata=1)
+def _builtin(frame_of, name, resolution=None):
+    """(scene, frame) of a built-in scene, the frame shared through the session (conftest ``frame_of``)."""
+    frame = frame_of(name, resolution, u_strata=1)
+    return frame.scene, frame
 
 
 def vis(frame, light, tech, **params):
@@ -121,8 +119,8 @@ def test_blur_stays_in_its_face_and_clamps_at_the_border(mitsuba_backend):
 # VSM: §3.3
 
 @pytest.fixture(scope="module")
-def planes(mitsuba_backend):
-    return _builtin("parallel_planes")
+def planes(frame_of):
+    return _builtin(frame_of, "parallel_planes")
 
 
 def test_vsm_equals_pcf_for_two_parallel_planes(planes):
@@ -243,9 +241,9 @@ def test_evsm_minimum_variance_is_scaled_by_the_square_of_the_warps_derivative(p
 
 
 @pytest.fixture(scope="module")
-def stack(mitsuba_backend):
+def stack(frame_of):
     from shadowlab.reference import store
-    scene, frame = _builtin("stack")
+    scene, frame = _builtin(frame_of, "stack")
     truth, _ = store.load(scene.spec)
     return scene, frame, truth
 
@@ -363,14 +361,14 @@ def test_esm_non_planarity_failure_and_both_fallbacks(mitsuba_backend):
     assert flagged["threshold"] < flagged["zmax"]
 
 
-def test_exponent_above_the_fp32_cap_raises_input_error(mitsuba_backend):
+def test_exponent_above_the_fp32_cap_raises_input_error(frame_of):
     """exp(c·z) for z ≤ 1 must stay below FLT_MAX ≈ 3.4·10³⁸ = exp(88.72) (§3.4); EVSM stores
     exp(2k·w), w ≤ 1, so k ≤ 44.36 (§3.5). Above: InputError naming fp32; at the cap: finite."""
     for tech, name, bad in (("esm", "exponent", 88.73), ("esm", "exponent", "100"),
                             ("evsm", "exp_pos", 44.37), ("evsm", "exp_neg", 60.0)):
         with pytest.raises(InputError, match="fp32"):
             get(tech).resolve({name: bad})
-    _, frame = _builtin("contact", resolution=(32, 32))
+    _, frame = _builtin(frame_of, "contact", resolution=(32, 32))
     for tech, p in (("esm", {"exponent": 88.72}), ("evsm", {"exp_pos": 44.36, "exp_neg": 44.36})):
         v = vis(frame, "key", tech, **p)
         assert np.isfinite(v).all() and v.min() >= 0.0 and v.max() <= 1.0 and v.min() < 0.01
@@ -379,7 +377,7 @@ def test_exponent_above_the_fp32_cap_raises_input_error(mitsuba_backend):
 # ---------------------------------------------------------------------------------------------
 # EVSM: §3.5
 
-def test_evsm_leaks_less_than_vsm_on_bench(mitsuba_backend):
+def test_evsm_leaks_less_than_vsm_on_bench(frame_of):
     """Slika 3.10 compares VSM, ESM and EVSM at a 3×3 filter. On ``bench`` the legs under the
     seat are umbra in the truth; in the light's view they lie just inside the seat's outline, so
     their footprints hold the seat (closer) and the floor past its edge (farther), and VSM's
@@ -389,7 +387,7 @@ def test_evsm_leaks_less_than_vsm_on_bench(mitsuba_backend):
     the 4-component variant is never above the 2-component one."""
     from shadowlab import pipeline
     from shadowlab.reference import store
-    scene, frame = _builtin("bench")
+    scene, frame = _builtin(frame_of, "bench")
     truth, _ = store.load(scene.spec)
     rate = {}
     for tech, p in (("vsm", {}), ("evsm", {}), ("pcf", {"bilinear": True})):
@@ -406,12 +404,12 @@ def test_evsm_leaks_less_than_vsm_on_bench(mitsuba_backend):
 # ---------------------------------------------------------------------------------------------
 # properties of all four
 
-def test_zero_filter_size_reduces_to_the_hard_shadow_map(mitsuba_backend):
+def test_zero_filter_size_reduces_to_the_hard_shadow_map(frame_of):
     """``kernel`` = 1: no blur, only the bilinear lookup of the moments. Thresholded at ½ the
     result is the nearest-texel shadow map except where the 2×2 lookup straddles an edge (and
     where the estimate differs there): measured on ``contact`` 0.27–0.31 % of the pixels, on the
     cube-mapped point light of ``ring`` 0.3–0.6 %; bound 1.5 %."""
-    for frame, light in ((_builtin("contact")[1], "key"), (_inline(RING)[1], "p")):
+    for frame, light in ((_builtin(frame_of, "contact")[1], "key"), (_inline(RING)[1], "p")):
         mask = frame.gbuffer.mask[..., 0] & frame.lit_mask(light)
         hard = vis(frame, light, "hard")
         for tech in MOMENT:
@@ -449,7 +447,9 @@ def test_a_new_continuous_value_compiles_no_new_kernel(mitsuba_backend):
     """Continuous parameters enter through dr.opaque: after one render per configuration, new
     values of every continuous parameter (and the receiver biases) reuse the kernels."""
     import drjit as dr
-    _, frame = _builtin("contact", resolution=(32, 32))
+    from shadowlab.render.frame import make_frame
+    from shadowlab.scene import load
+    frame = make_frame(load("contact", resolution=(32, 32)), u_strata=1)  # its own: nothing rendered on it yet
     later = {"vsm": [{"min_variance": 3e-5, "bleed": 0.4, "constant_bias": 0.01, "slope_bias": 0.02}],
              "esm": [{"exponent": 55.5, "max_slope_bias": 0.2, "normal_offset": 1.5}],
              "esm_fb": [{"exponent": 70.0, "threshold_eps": 0.5, "depth_bias": 100, "slope_scaled_depth_bias": 1.0}],
@@ -471,14 +471,14 @@ def test_a_new_continuous_value_compiles_no_new_kernel(mitsuba_backend):
         assert all(k["cache_hit"] for k in jit), (key, [k.get("cache_hit") for k in jit])
 
 
-def test_gradients_match_finite_differences(planes):
+def test_gradients_match_finite_differences(planes, frame_of):
     """Differentiable parameters may be passed as an mi.Float with gradients enabled; the
     gradient of the mean visibility on ``parallel_planes`` (64², 128² map, 5×5) matches central
     differences (measured: esm.exponent AD −1.203·10⁻³, FD −1.192·10⁻³; vsm.bleed −0.10525 both).
     Every declared differentiable parameter gets a finite gradient."""
     import drjit as dr
     import mitsuba as mi
-    _, frame = _builtin("parallel_planes", resolution=(64, 64))
+    _, frame = _builtin(frame_of, "parallel_planes", resolution=(64, 64))
 
     def loss(tech, name, x):
         v = get(tech).render(frame, {"kernel": 5, "resolution": 128, name: x}).visibility["panel"]
@@ -505,12 +505,12 @@ def test_gradients_match_finite_differences(planes):
             t.resolve({"kernel": mi.Float(3.0)})
 
 
-def test_every_technique_declares_kernel_resolution_and_shared_bias_params(mitsuba_backend):
+def test_every_technique_declares_kernel_resolution_and_shared_bias_params(frame_of):
     """The benchmark sweeps ``kernel`` and sets ``resolution`` 512/1024/2048; the receiver biases
     are the very declarations of shadow_map.BIAS_PARAMS (not copies)."""
     from shadowlab.techniques.shadow_map import BIAS_PARAMS
     shared = {p.name: p for p in BIAS_PARAMS}
-    _, frame = _builtin("contact", resolution=(16, 16))
+    _, frame = _builtin(frame_of, "contact", resolution=(16, 16))
     for tech in MOMENT:
         t = get(tech)
         names = [p.name for p in t.params]

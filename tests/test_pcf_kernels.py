@@ -15,25 +15,19 @@ import pytest
 
 from shadowlab.techniques import get
 from shadowlab.techniques import pcf as pcf_mod
+from scene_builder import floor, frame_from
 
 EDGE = {
     "name": "edge",
     "camera": {"position": [1.2, 0.9, 0.0], "target": [0.0, 0.0, 0.0], "fov": 8, "resolution": [96, 96]},
     "lights": [{"name": "sun", "kind": "directional", "direction": [0.0, -1.0, 0.0], "up": [0.0, 0.0, 1.0],
                 "irradiance": 1.0, "shadow_map": 64}],
-    "shapes": [{"name": "floor", "type": "rectangle", "rotate": [1, 0, 0, -90], "scale": 1.0},
+    "shapes": [floor(1.0),
                {"name": "occ", "type": "rectangle", "translate": [-0.5, 0.5, 0.0], "rotate": [1, 0, 0, 90],
                 "scale": 0.5}],
 }
 OPEN = {**EDGE, "name": "open", "camera": {**EDGE["camera"], "fov": 60, "resolution": [48, 48]},
         "shapes": EDGE["shapes"][:1]}
-
-
-def _frame(spec):
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import build, parse
-    scene = build(parse(spec, f"{spec['name']}.toml"))
-    return scene, make_frame(scene, u_strata=1)
 
 
 def vis(frame, light, tech="pcf", **params):
@@ -43,7 +37,8 @@ def vis(frame, light, tech="pcf", **params):
 @pytest.fixture(scope="module")
 def edge(mitsuba_backend):
     from shadowlab.techniques.shadow_map import view_for
-    scene, frame = _frame(EDGE)
+    frame = frame_from(EDGE)
+    scene = frame.scene
     gb = frame.gbuffer
     floor = (gb.shape_id[..., 0] == scene.shape_names.index("floor")) & gb.mask[..., 0]
     view = view_for(frame, "sun", get("pcf").resolve({}))
@@ -52,13 +47,11 @@ def edge(mitsuba_backend):
 
 
 @pytest.fixture(scope="module")
-def planes(mitsuba_backend):
+def planes(frame_of):
     from shadowlab.reference import store
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import load
-    scene = load("parallel_planes")
-    truth, _ = store.load(scene.spec)
-    return make_frame(scene), truth
+    frame = frame_of("parallel_planes")
+    truth, _ = store.load(frame.scene.spec)
+    return frame, truth
 
 
 # ---------------------------------------------------------------------------------------------
@@ -142,7 +135,7 @@ def test_kernel_1_grid_equals_hard_bit_for_bit(edge, planes):
 
 def test_unoccluded_points_are_exactly_lit_for_every_pattern(mitsuba_backend):
     """Σ w_i·1 / Σ w_i = 1 in the kernel, for the widest footprint (9×9, softness 8)."""
-    _, frame = _frame(OPEN)
+    frame = frame_from(OPEN)
     for pattern in pcf_mod.PATTERNS:
         for bilinear in (False, True):
             v = vis(frame, "sun", kernel=9, softness=8.0, pattern=pattern, bilinear=bilinear)

@@ -13,19 +13,18 @@ import numpy as np
 import pytest
 
 from shadowlab.techniques.base import get
+from scene_builder import floor, frame_from, scene
 
 
 @pytest.fixture(scope="module")
 def ramp(tmp_path_factory, mitsuba_backend):
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import build, parse
     sun = {"name": "L", "kind": "directional", "direction": [0.0, -1.0, 0.0], "irradiance": 3.0, "shadow_map": 256}
-    shapes = [{"name": "floor", "type": "rectangle", "rotate": [1, 0, 0, -90], "scale": 3.0},
+    shapes = [floor(3.0),
               {"name": "ramp", "type": "rectangle", "rotate": [[0, 0, 1, 60], [1, 0, 0, -90]],
                "translate": [0.0, 0.05, 0.0], "scale": [0.08, 1.0, 1.0]}]
-    d = {"name": "ramp", "camera": {"position": [0, 4, 3], "target": [0, 0, 0], "fov": 50, "resolution": [64, 64]},
-         "lights": [sun], "shapes": shapes}
-    return make_frame(build(parse(d, str(tmp_path_factory.mktemp("ramp") / "ramp.toml"))), u_strata=1)
+    d = scene("ramp", camera={"position": [0, 4, 3], "target": [0, 0, 0], "fov": 50}, resolution=(64, 64),
+              lights=[sun], shapes=shapes)
+    return frame_from(d, tmp_path_factory.mktemp("ramp") / "ramp.toml")
 
 
 def _stored(view, values):

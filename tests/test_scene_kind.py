@@ -13,6 +13,7 @@ from shadowlab.render.gbuffer import GBuffer
 from shadowlab.render.sdf_gbuffer import SDFGBuffer
 from shadowlab.scene import load
 from shadowlab.scene.spec import load_spec, parse, resolve
+from scene_builder import write_scene
 
 SDF_ONLY = {"name": "ball", "camera": {"position": [0, 1, 4], "target": [0, 0.5, 0], "resolution": [16, 12]},
             "lights": [{"name": "key", "kind": "sphere", "position": [1, 3, 1], "radius": 0.3, "power": 50}],
@@ -30,12 +31,8 @@ def test_the_kind_of_a_scene_is_whether_it_has_sdf_objects():
     assert parse(mitsuba_only).kind == "mitsuba"
 
 
-def test_make_frame_dispatches_on_the_kind(mitsuba_backend, tmp_path):
-    p = tmp_path / "ball.toml"
-    p.write_text('name = "ball"\n[camera]\nposition = [0, 1, 4]\ntarget = [0, 0.5, 0]\nresolution = [16, 12]\n'
-                 '[[lights]]\nname = "key"\nkind = "sphere"\nposition = [1, 3, 1]\nradius = 0.3\npower = 50\n'
-                 '[[sdf]]\ntype = "sphere"\ncenter = [0, 0.5, 0]\nradius = 0.5\n'
-                 '[[sdf]]\ntype = "box"\nhalf = [2, 0.05, 2]\ntranslate = [0, -0.05, 0]\n')
+def test_make_frame_dispatches_on_the_kind(frame_of, tmp_path):
+    p = write_scene(tmp_path / "ball.toml", SDF_ONLY)   # the scene as a file, loaded like a user's
     sc = load(str(p))
     assert sc.kind == "sdf"
     fr = make_frame(sc, u_strata=1)
@@ -43,9 +40,8 @@ def test_make_frame_dispatches_on_the_kind(mitsuba_backend, tmp_path):
     assert fr.gbuffer.mask.any()
     with pytest.raises(InputError, match="SDF-only objects"):
         fr.light_view("key")
-    sc2 = load("contact", resolution=(16, 16))
-    assert sc2.kind == "mitsuba"
-    fr2 = make_frame(sc2, u_strata=1)
+    fr2 = frame_of("contact", (16, 16), u_strata=1)
+    assert fr2.scene.kind == "mitsuba"
     assert type(fr2.gbuffer) is GBuffer
 
 

@@ -402,11 +402,9 @@ def test_every_variant_is_a_registered_technique_with_declared_params():
         get("sdf_base").resolve({"direction": "C"})
 
 
-def test_a_scene_without_sdf_is_an_input_error(mitsuba_backend):
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import load
+def test_a_scene_without_sdf_is_an_input_error(frame_of):
     from shadowlab.techniques import get
-    frame = make_frame(load("foliage", resolution=(16, 16)), u_strata=1)
+    frame = frame_of("foliage", (16, 16), u_strata=1)
     assert frame.sdf is None
     for n in SDF_TECHNIQUES:
         with pytest.raises(InputError, match="signed distance field"):
@@ -414,10 +412,8 @@ def test_a_scene_without_sdf_is_an_input_error(mitsuba_backend):
 
 
 @pytest.fixture(scope="module")
-def small_frame(mitsuba_backend):
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import load
-    return make_frame(load("sdf_simple", resolution=(32, 32)), u_strata=1)
+def small_frame(frame_of):
+    return frame_of("sdf_simple", (32, 32), u_strata=1)
 
 
 def test_render_is_pure_and_parameters_reuse_kernels(small_frame):

@@ -237,11 +237,10 @@ def _segment(o, target, short):
     return ray
 
 
-def test_mandelbulb_frame_uses_the_cone_traced_gbuffer_and_refuses_shadow_maps():
-    from shadowlab.render.frame import make_frame
-    sc = load("mandelbulb")
+def test_mandelbulb_frame_uses_the_cone_traced_gbuffer_and_refuses_shadow_maps(frame_of):
+    frame = frame_of("mandelbulb")
+    sc = frame.scene
     assert sc.spec.sdf and sc.radius > 1.0
-    frame = make_frame(sc)
     gb = frame.gbuffer
     assert isinstance(gb, SDFGBuffer) and frame.sdf is not None
     names = [p.name for p in frame.sdf.primitives]

@@ -286,15 +286,13 @@ def test_mandelbulb_mc_reproduces_its_reference_and_the_single_ray_leaks(mitsuba
 # ---------------------------------------------------------------------------------------------
 # differentiability on a scene
 
-def test_light_scale_gradient_on_a_scene(mitsuba_backend):
+def test_light_scale_gradient_on_a_scene(frame_of):
     """Forward-mode d(visibility)/d(light_scale) per pixel against central differences, in the
     soft part of the shadow (the marches run detached; the result is recomputed from the minimum)."""
     import drjit as dr
     import mitsuba as mi
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import load
     from shadowlab.techniques import get
-    fr = make_frame(load("sdf_simple", resolution=(48, 48)), u_strata=1)
+    fr = frame_of("sdf_simple", (48, 48), u_strata=1)
     for name in ("sdf_linear", "sdf_quilez"):
         t = get(name)
         s = mi.Float(1.0)

@@ -173,8 +173,8 @@ def test_tint_colours_receivers_behind_the_nearest_translucent_caster_only(panes
         assert (lit.numpy() == (0.0 if behind else 1.0)).all()
 
 
-def test_a_scene_without_translucency_gets_the_plain_view():
-    frame = make_frame(load("parallel_planes"))
+def test_a_scene_without_translucency_gets_the_plain_view(frame_of):
+    frame = frame_of("parallel_planes")
     assert frame.light_view("panel", res=64, translucent=True) is frame.light_view("panel", res=64)
 
 

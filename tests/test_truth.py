@@ -118,11 +118,9 @@ def test_gbuffer_depth_matches_mitsuba_depth_aov():
     assert np.median(rel) < 2e-3
 
 
-def test_same_seed_same_bits_and_seed_changes_noise(tmp_path):
-    from shadowlab.render.frame import make_frame
+def test_same_seed_same_bits_and_seed_changes_noise(frame_of):
     from shadowlab.reference.truth import visibility
-    sc = load("contact", resolution=(48, 48))
-    fr = make_frame(sc)
+    fr = frame_of("contact", (48, 48))
     a = visibility(fr, "key", seed=3, max_rounds=16)
     b = visibility(fr, "key", seed=3, max_rounds=16)
     c = visibility(fr, "key", seed=4, max_rounds=16)
@@ -156,13 +154,13 @@ def test_shaded_truth_agrees_with_mitsuba_direct_integrator():
     assert np.median(np.abs(z[m])) < 1.0  # |z| of N(0,1) has median 0.67
 
 
-def test_the_truths_cost_is_recorded_per_light(mitsuba_backend):
+def test_the_truths_cost_is_recorded_per_light(frame_of):
     """stats["per_light"]: each light's seconds and shadow rays; the rays add up to the total and
     equal the sum of that light's per-pixel ray counts (the stored N channel)."""
-    from shadowlab.render.frame import make_frame
     from shadowlab.reference.truth import render_truth
-    sc = load("two_lights", resolution=(32, 32))
-    t = render_truth(make_frame(sc), spp=0, max_rounds=8)
+    fr = frame_of("two_lights", (32, 32))
+    sc = fr.scene
+    t = render_truth(fr, spp=0, max_rounds=8)
     per = t.stats["per_light"]
     assert set(per) == {l.name for l in sc.lights}
     assert sum(c["shadow_rays"] for c in per.values()) == t.stats["shadow_rays"]

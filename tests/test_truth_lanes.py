@@ -13,8 +13,6 @@ import mitsuba as mi
 
 from shadowlab import backend
 from shadowlab.reference import truth
-from shadowlab.render.frame import make_frame
-from shadowlab.scene import load
 from conftest import CUDA
 
 backend.init()
@@ -67,8 +65,8 @@ def test_fold_rounds_adds_each_points_rounds_in_order():
 
 
 @pytest.mark.parametrize("scene,light", [("contact", "key"), ("parallel_planes", "panel")])
-def test_round_lanes_agree_with_point_lanes(monkeypatch, scene, light):
-    fr = make_frame(load(scene, resolution=(64, 48)))
+def test_round_lanes_agree_with_point_lanes(monkeypatch, frame_of, scene, light):
+    fr = frame_of(scene, (64, 48))
     out = {}
     for per_round in (False, True):
         monkeypatch.setattr(truth, "_lanes_per_round", lambda: per_round)
