@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 LLVM_PKG ?= libllvm19
 CHROMIUM_PKG ?= chromium
 
-.PHONY: setup run-deps venv llvm browser demo test bench references docs clean
+.PHONY: setup run-deps venv llvm browser demo test test-fast bench references docs clean
 
 setup: venv llvm browser
 
@@ -54,6 +54,11 @@ demo: run-deps
 
 test: setup
 	$(PY) -m pytest -q
+
+# While editing: the tests not marked slow (pytestmark = pytest.mark.slow in the files measured to
+# take longest; see tests/conftest.py), in about a minute on 2 cores. `make test` runs them all.
+test-fast: setup
+	$(PY) -m pytest -q -m "not slow"
 
 bench: run-deps
 	$(VENV)/bin/shadowlab bench --out reports/bench
