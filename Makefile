@@ -55,8 +55,8 @@ demo: run-deps
 test: setup
 	$(PY) -m pytest -q
 
-# While editing: the tests not marked slow (pytestmark = pytest.mark.slow in the files measured to
-# take longest; see tests/conftest.py), in about a minute on 2 cores. `make test` runs them all.
+# While editing: the tests not marked slow (tests/conftest.py marks them from measured durations:
+# SLOW_FILES, SLOW_TESTS), in about a minute on 2 cores. `make test` runs them all.
 test-fast: setup
 	$(PY) -m pytest -q -m "not slow"
 
