@@ -17,15 +17,13 @@ import pytest
 
 from shadowlab.errors import SceneError
 from shadowlab.techniques import base
+import lightview_scene
+from lightview_scene import SHAPES
+from scene_builder import frame_from
 
 RES = [96, 96]
-#: floor (tilted 0.05°, see test_techniques_shadow_map.py), a box and a sphere
-SHAPES = [
-    {"name": "floor", "type": "rectangle", "rotate": [[0, 0, 1, 0.05], [1, 0, 0, -90]], "scale": 3.0},
-    {"name": "box", "type": "cube", "translate": [-0.7, 0.4, -0.2], "rotate": [0, 1, 0, 30], "scale": 0.4},
-    {"name": "ball", "type": "sphere", "center": [0.7, 0.6, -0.1], "radius": 0.45},
-]
-CAMERA = {"position": [0.0, 4.5, 4.5], "target": [0.0, 0.0, 0.3], "fov": 50, "resolution": RES}
+#: floor (tilted 0.05°, see test_techniques_shadow_map.py), a box and a sphere: lightview_scene.py's, at 96²
+CAMERA = {**lightview_scene.CAMERA, "resolution": RES}
 SPOT = {"name": "L", "kind": "spot", "position": [-0.4, 3.0, -2.0], "target": [0.1, 0.0, 0.6], "angle": 35.0,
         "power": 100.0, "shadow_map": 1024}
 #: two small posts whose shadows land in the spot frustum's corners, outside the cone
@@ -35,9 +33,7 @@ SUN = {"name": "L", "kind": "directional", "direction": [0.3, -1.0, 0.8], "irrad
 
 
 def _frame(scene_dict, path="scene.toml"):
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import build, parse
-    return make_frame(build(parse(scene_dict, str(path))), u_strata=1)
+    return frame_from(scene_dict, path)
 
 
 def _hard(frame, name, **params):
