@@ -286,31 +286,15 @@ def test_scene_of_sdf_objects_only(tmp_path):
     shows the floor through it), and a scene of planes only is refused."""
     from shadowlab.errors import SceneError
     from shadowlab.render.frame import make_frame
-    head = """
-name = "only_sdf"
-[camera]
-position = [0, 4, 0.01]
-target = [0, 0, 0]
-fov = 40
-resolution = [64, 64]
-[[lights]]
-name = "L"
-kind = "sphere"
-position = [0, 5, 0]
-radius = 0.3
-power = 100
-[[sdf]]
-name = "ground"
-type = "plane"
-"""
-    p = tmp_path / "s.toml"
-    p.write_text(head + """
-[[sdf]]
-name = "nut"
-type = "difference"
-translate = [0, 0.5, 0]
-children = [{ type = "box", half = [1, 0.2, 1] }, { type = "cylinder", p0 = [0, -1, 0], p1 = [0, 1, 0], radius = 0.3 }]
-""")
+    from scene_builder import write_scene
+    head = {"name": "only_sdf", "camera": {"position": [0, 4, 0.01], "target": [0, 0, 0], "fov": 40},
+            "resolution": (64, 64), "lights": [{"name": "L", "kind": "sphere", "position": [0, 5, 0], "radius": 0.3,
+                                                "power": 100}]}
+    ground = {"name": "ground", "type": "plane"}
+    nut = {"name": "nut", "type": "difference", "translate": [0, 0.5, 0],
+           "children": [{"type": "box", "half": [1, 0.2, 1]},
+                        {"type": "cylinder", "p0": [0, -1, 0], "p1": [0, 1, 0], "radius": 0.3}]}
+    p = write_scene(tmp_path / "s.toml", **head, sdf=[ground, nut])
     sc = load(str(p))
     assert np.allclose(sc.bbox_min, [-1, 0.3, -1]) and np.allclose(sc.bbox_max, [1, 0.7, 1])
     frame = make_frame(sc)
@@ -318,6 +302,6 @@ children = [{ type = "box", half = [1, 0.2, 1] }, { type = "cylinder", p0 = [0, 
     assert frame.gbuffer.mask.all()                      # the plane fills the view
     assert ids[32, 32] == 0 and ids[32, 20] == 1         # the floor through the hole; the nut
     assert (ids == 0).any() and (ids == 1).mean() > 0.3
-    p.write_text(head)
+    write_scene(p, **head, sdf=[ground])
     with pytest.raises(SceneError, match="no bounded object"):
         load(str(p))
