@@ -211,72 +211,23 @@ def test_lights_json_for_every_light_kind(tmp_path, mitsuba_backend):
     import mitsuba as mi
     from shadowlab.exchange.export import export_scene
     from shadowlab.scene import load
-    text = """
-name = "kinds"
-[camera]
-position = [0.0, 5.0, 6.0]
-target = [0.0, 0.0, 0.0]
-fov = 50
-resolution = [24, 24]
-[[lights]]
-name = "r"
-kind = "rect"
-position = [1.0, 4.0, 0.0]
-target = [0.0, 0.0, 0.0]
-size = [0.8, 0.4]
-power = 100
-color = [1.0, 0.5, 0.25]
-[[lights]]
-name = "d"
-kind = "disk"
-position = [-1.0, 4.0, 0.0]
-target = [0.0, 0.0, 0.0]
-radius = 0.3
-power = 80
-[[lights]]
-name = "s"
-kind = "sphere"
-position = [0.0, 3.0, 2.0]
-radius = 0.2
-power = 60
-[[lights]]
-name = "p"
-kind = "point"
-position = [0.0, 3.5, -2.0]
-power = 50
-[[lights]]
-name = "sp"
-kind = "spot"
-position = [2.0, 3.0, 1.0]
-target = [0.0, 0.0, 0.0]
-angle = 25
-power = 40
-[[lights]]
-name = "sun"
-kind = "directional"
-direction = [0.2, -1.0, 0.3]
-angular_diameter = 2.0
-irradiance = 2.0
-[[shapes]]
-name = "floor"
-type = "rectangle"
-rotate = [1, 0, 0, -90]
-scale = 3.0
-[[shapes]]
-name = "puck"
-type = "disk"
-translate = [0.5, 0.3, 0.0]
-rotate = [1, 0, 0, -90]
-scale = 0.4
-[[shapes]]
-name = "can"
-type = "cylinder"
-p0 = [-0.6, 0.0, 0.3]
-p1 = [-0.6, 0.8, 0.3]
-radius = 0.2
-"""
-    toml = tmp_path / "kinds.toml"
-    toml.write_text(text)
+    from scene_builder import floor, write_scene
+    lights = [
+        {"name": "r", "kind": "rect", "position": [1.0, 4.0, 0.0], "target": [0.0, 0.0, 0.0], "size": [0.8, 0.4],
+         "power": 100, "color": [1.0, 0.5, 0.25]},
+        {"name": "d", "kind": "disk", "position": [-1.0, 4.0, 0.0], "target": [0.0, 0.0, 0.0], "radius": 0.3,
+         "power": 80},
+        {"name": "s", "kind": "sphere", "position": [0.0, 3.0, 2.0], "radius": 0.2, "power": 60},
+        {"name": "p", "kind": "point", "position": [0.0, 3.5, -2.0], "power": 50},
+        {"name": "sp", "kind": "spot", "position": [2.0, 3.0, 1.0], "target": [0.0, 0.0, 0.0], "angle": 25,
+         "power": 40},
+        {"name": "sun", "kind": "directional", "direction": [0.2, -1.0, 0.3], "angular_diameter": 2.0,
+         "irradiance": 2.0}]
+    shapes = [floor(3.0),
+              {"name": "puck", "type": "disk", "translate": [0.5, 0.3, 0.0], "rotate": [1, 0, 0, -90], "scale": 0.4},
+              {"name": "can", "type": "cylinder", "p0": [-0.6, 0.0, 0.3], "p1": [-0.6, 0.8, 0.3], "radius": 0.2}]
+    toml = write_scene(tmp_path / "kinds.toml", name="kinds", lights=lights, shapes=shapes, resolution=(24, 24),
+                       camera={"position": [0.0, 5.0, 6.0], "target": [0.0, 0.0, 0.0], "fov": 50})
     out = tmp_path / "kinds"
     m = export_scene(str(toml), out)
     lj = json.loads((out / "lights.json").read_text())
