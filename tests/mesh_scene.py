@@ -3,9 +3,8 @@ and tests/test_default_acne.py: the mesh on which shadow-map acne shows."""
 
 import numpy as np
 
+from scene_builder import floor, frame_from
 from shadowlab.exchange.ply import write_ply
-from shadowlab.render.frame import make_frame
-from shadowlab.scene import build, parse
 from shadowlab.scene.mesh import _sphere
 
 
@@ -18,6 +17,5 @@ def ball_frame(d, segments: int):
                                        "resolution": [128, 128]},
             "lights": [{"name": "L", "kind": "spot", "position": [1.5, 3.0, 1.0], "target": [0, 0.5, 0],
                         "angle": 35.0, "power": 100.0, "shadow_map": 1024}],
-            "shapes": [{"name": "floor", "type": "rectangle", "rotate": [1, 0, 0, -90], "scale": 3.0},
-                       {"name": "ball", "type": "ply", "filename": "ball.ply", "translate": [0, 0.8, 0]}]}
-    return make_frame(build(parse(spec, str(d / "acne.toml"))), u_strata=1)
+            "shapes": [floor(3.0), {"name": "ball", "type": "ply", "filename": "ball.ply", "translate": [0, 0.8, 0]}]}
+    return frame_from(spec, d / "acne.toml")

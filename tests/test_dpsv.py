@@ -39,8 +39,7 @@ def _canopy(path, n=9):
 
 
 def _scene(tmp_path, light, shapes=None, camera=CAMERA):
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import build, parse
+    from scene_builder import frame_from, scene
     ply = tmp_path / "canopy.ply"
     if not ply.exists():
         _canopy(ply)
@@ -50,8 +49,7 @@ def _scene(tmp_path, light, shapes=None, camera=CAMERA):
         {"name": "box2", "type": "cube", "translate": [1.0, 0.5, 0.6], "rotate": [1, 1, 0, 40], "scale": 0.3},
         {"name": "canopy", "type": "ply", "filename": "canopy.ply", "translate": [0.1, 1.3, -0.3]},
     ]
-    d = {"name": "dpsv_test", "camera": camera, "lights": [light], "shapes": shapes}
-    return make_frame(build(parse(d, str(tmp_path / "scene.toml"))), u_strata=1)
+    return frame_from(scene("dpsv_test", camera=camera, lights=[light], shapes=shapes), tmp_path / "scene.toml")
 
 
 @pytest.fixture(scope="module", params=sorted(LIGHTS))

@@ -32,11 +32,10 @@ ZERO_BIAS = {"depth_bias": 0, "slope_scaled_depth_bias": 0.0, "constant_bias": 0
 def setup(mitsuba_backend):
     import drjit as dr
     import mitsuba as mi
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import build, parse
+    from scene_builder import frame_from
 
-    scene = build(parse(SCENE, "point_contact.toml"))
-    frame = make_frame(scene, u_strata=1)
+    frame = frame_from(SCENE, "point_contact.toml")
+    scene = frame.scene
     gb = frame.gbuffer
     light = mi.Point3f(*SCENE["lights"][0]["position"])
     occluded = scene.mi_scene.ray_test(gb.si.spawn_ray_to(light), gb.valid)
@@ -167,10 +166,9 @@ def spot(mitsuba_backend):
     perpendicular to the light's axis, so wide PCF kernels see no acne there (on tilted
     receivers they do, [Buljan 2020, §3.2]: PCF does not fix acne) and every fractional value on the
     floor is penumbra."""
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import build, parse
-    scene = build(parse(SPOT_SCENE, "spot_sphere.toml"))
-    frame = make_frame(scene, u_strata=1)
+    from scene_builder import frame_from
+    frame = frame_from(SPOT_SCENE, "spot_sphere.toml")
+    scene = frame.scene
     gb = frame.gbuffer
     floor = (gb.shape_id[..., 0] == scene.shape_names.index("floor")) & gb.mask[..., 0]
     return frame, floor

@@ -26,10 +26,8 @@ SMALL = {"t_max": 256, "grid": 8}
 
 
 def _frame(scene: dict):
-    from shadowlab.render.frame import make_frame
-    from shadowlab.scene import build, parse
-    spec = parse(copy.deepcopy(scene), f"{scene['name']}.toml")
-    return make_frame(build(spec), u_strata=1)
+    from scene_builder import frame_from
+    return frame_from(copy.deepcopy(scene))
 
 
 @pytest.fixture(scope="module")
