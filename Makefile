@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 LLVM_PKG ?= libllvm19
 CHROMIUM_PKG ?= chromium
 
-.PHONY: setup run-deps venv llvm browser demo test test-fast bench references docs clean
+.PHONY: setup run-deps venv llvm browser demo test test-fast lint bench references docs clean
 
 setup: venv llvm browser
 
@@ -52,8 +52,12 @@ browser:
 demo: run-deps
 	$(VENV)/bin/shadowlab demo --out reports/demo
 
-test: setup
+test: setup lint
 	$(PY) -m pytest -q
+
+# ruff (configured in pyproject.toml) over the package and the tests
+lint: venv
+	$(VENV)/bin/ruff check shadowlab tests docs/conf.py
 
 # While editing: the tests not marked slow (tests/conftest.py marks them from measured durations:
 # SLOW_FILES, SLOW_TESTS), in about a minute on 2 cores. `make test` runs them all.

@@ -224,8 +224,9 @@ def render(export_dir, light_name: str, k: int = 8, rounds: int = 8, seed: int =
         Vr = np.where(gsum > 0, (G * v).sum(1) / np.where(gsum > 0, gsum, 1), 1.0)
         Ar = v.mean(1)
         Jr = area * (G * v).mean(1)   # ∫ G v dA for this round
-        sv += Vr; sv2 += Vr * Vr; sa += Ar; sa2 += Ar * Ar
-        sg += area * G.mean(1); sj += Jr; sj2 += Jr * Jr
+        sv, sv2 = sv + Vr, sv2 + Vr * Vr
+        sa, sa2 = sa + Ar, sa2 + Ar * Ar
+        sg, sj, sj2 = sg + area * G.mean(1), sj + Jr, sj2 + Jr * Jr
 
     def mean_se(s, s2):
         m = s / rounds

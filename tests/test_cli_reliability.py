@@ -32,7 +32,6 @@ from shadowlab.fit import preset as P
 from shadowlab.gate import check
 from shadowlab.gate.check import MIN_GATE_PIXELS
 from shadowlab.gate.junit import junit_xml
-from shadowlab.gate.runner import run_gate_file
 from shadowlab.reference import store
 from shadowlab.reference.truth import LightTruth, Truth
 from shadowlab.io.outdir import MARKER

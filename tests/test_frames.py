@@ -17,7 +17,6 @@ from shadowlab.gate.runner import run_gate_file
 from shadowlab.metrics.temporal import shimmer, shimmer_per_light
 from shadowlab.reference import store
 from shadowlab.render.frame import make_frame
-from shadowlab.render.gbuffer import vec_numpy
 from shadowlab.render.lightview import FrustumSlice
 from shadowlab.scene import load
 from shadowlab.scene.spec import load_spec, resolve

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from shadowlab import backend, pipeline
+from shadowlab import pipeline
 from shadowlab.cli import main as cli_main
 from shadowlab.errors import InputError
 from shadowlab.gate import check, load_gate_file, parse_thresholds, truth_target

@@ -223,3 +223,16 @@ def test_the_real_package_gets_a_cycle_when_one_is_added(tmp_path, src):
     p.write_text(p.read_text() + "\n" + extra)
     cycle = find_cycle(package_graph(imports(tmp_path)))
     assert cycle is not None and cycle[0] == cycle[-1]
+
+
+def test_the_package_imports_its_own_modules_relatively():
+    """One import style inside the package: ``from .x import`` / ``from ..x import``, never
+    ``from shadowlab.x import`` (the tests and users import absolutely)."""
+    bad = []
+    for f in sorted(PKG.rglob("*.py")):
+        for node in ast.walk(ast.parse(f.read_text(), filename=str(f))):
+            if isinstance(node, ast.ImportFrom) and not node.level and (node.module or "").split(".")[0] == "shadowlab":
+                bad.append(f"{f.relative_to(ROOT)}:{node.lineno}")
+            if isinstance(node, ast.Import) and any(a.name.split(".")[0] == "shadowlab" for a in node.names):
+                bad.append(f"{f.relative_to(ROOT)}:{node.lineno}")
+    assert not bad, bad

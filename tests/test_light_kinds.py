@@ -20,6 +20,7 @@ from shadowlab.techniques import base
 import lightview_scene
 from lightview_scene import SHAPES
 from scene_builder import frame_from
+from cross_cpu import grazing_pixels
 
 RES = [96, 96]
 #: floor (tilted 0.05°, see test_techniques_shadow_map.py), a box and a sphere: lightview_scene.py's, at 96²
@@ -311,7 +312,8 @@ def test_hard_edge_on_parallel_planes_sits_on_the_truths_half_visible_contour(mi
     frame = make_frame(build(spec), u_strata=1)
     gb = frame.gbuffer
     assert truth.lights["panel"].A.shape == (gb.height, gb.width) == (128, 128)
-    assert np.array_equal(truth.mask, gb.mask[..., 0])
+    # the committed truth's mask is this machine's G-buffer's but for rays that graze an edge (tests/cross_cpu.py)
+    assert (truth.mask != gb.mask[..., 0]).sum() <= grazing_pixels(truth.mask.size)
     vis = _hard(frame, "panel")
     A = truth.lights["panel"].A
     floor = (gb.shape_id[..., 0] == frame.scene.shape_names.index("floor")) & gb.mask[..., 0]

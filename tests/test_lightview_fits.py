@@ -14,7 +14,7 @@ import pytest
 from lightview_scene import SCENE
 from scene_builder import frame_from
 from shadowlab.errors import InputError
-from shadowlab.render.lightview import FrustumSlice, SceneSphere, TileRect, light_view, projection
+from shadowlab.render.lightview import FrustumSlice, SceneSphere, TileRect, projection
 
 BASELINE = Path(__file__).parent / "data" / "lightview_baseline.npz"
 

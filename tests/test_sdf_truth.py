@@ -133,7 +133,6 @@ def test_hard_equals_point_light_visibility_except_within_one_pixel_of_edges(sim
     import mitsuba as mi
     from scipy.ndimage import maximum_filter, minimum_filter
     from shadowlab.scene.lights import light_sphere
-    from shadowlab.sdf import soft
     fr, sc = simple["frame"], simple["scene"]
     gb = fr.gbuffer
     c, R = light_sphere(sc, simple["light"])
@@ -181,7 +180,6 @@ def test_the_light_below_the_receivers_horizon_darkens_the_single_ray(simple):
     the thesis' visibility term, measured: mean 0.87 on such pixels of sdf_simple."""
     from shadowlab.render.gbuffer import vec_numpy
     from shadowlab.scene.lights import light_sphere
-    from shadowlab.sdf import soft
     fr = simple["frame"]
     gb = fr.gbuffer
     c, R = light_sphere(simple["scene"], simple["light"])
@@ -270,7 +268,7 @@ def test_mandelbulb_mc_reproduces_its_reference_and_the_single_ray_leaks(mitsuba
     case = _case("mandelbulb", tmp_path_factory)
     meta_truth = case["truth"].stats.get("truth")
     assert meta_truth == "sdf_mc_cone"
-    pen, A, m = case["pen"], case["A"], case["mask"]
+    A, m = case["A"], case["mask"]
     mc, _ = vis(case, "sdf_mc", samples=256, measure="solid_angle", seed=7)
     se = np.sqrt(A * (1 - A) / 256)
     z = (mc - A)[m] / np.sqrt(se[m] ** 2 + 1e-6)

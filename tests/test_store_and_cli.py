@@ -3,7 +3,6 @@
 import hashlib
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -136,7 +135,7 @@ def test_cli_reports_unusable_libllvm_exit_3(tmp_path):
 
 def test_compare_writes_report_and_refuses_bad_input_without_touching_it(tmp_path):
     out = tmp_path / "report"
-    run = pipeline.compare("contact", ["hard", "pcf"], ["pcf.kernel=3"], out=out)
+    pipeline.compare("contact", ["hard", "pcf"], ["pcf.kernel=3"], out=out)
     m = json.loads((out / "metrics.json").read_text())
     assert m["scene"] == "contact" and m["resolution"] == [128, 128]
     assert {"spp", "max_std_error"} <= set(m["reference"])

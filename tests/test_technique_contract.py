@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from shadowlab.errors import InputError
-from shadowlab.techniques import base, get, names
+from shadowlab.techniques import get, names
 from shadowlab.techniques.base import LIGHT_SCALE, LightResult, Param, Pooled, Technique
 
 

@@ -2,7 +2,6 @@
 assert what is true). Uses the committed 128² references, so nothing long is rendered here."""
 
 import numpy as np
-import pytest
 
 from shadowlab import backend
 from shadowlab.reference import store

@@ -30,7 +30,6 @@ import os
 import tempfile
 from pathlib import Path
 
-import drjit as dr
 import numpy as np
 
 from .. import backend

@@ -11,7 +11,7 @@ from them (:mod:`shadowlab.docs`), so a page can always be rebuilt from tracked 
 ['heading', 'text', 'table']
 >>> blocks[2]["columns"], blocks[2]["rows"]
 (['a', 'b'], [['1', '2']])
->>> render_blocks(blocks) == "## Cost\\n\\nOne run.\\n\\n| a | b |\\n|---|---|\\n| 1 | 2 |"
+>>> render_blocks(blocks) == "## Cost\\n\\nOne run.\\n\\n| a | b |\\n| --- | --- |\\n| 1 | 2 |"
 True
 """
 

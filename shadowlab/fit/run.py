@@ -321,7 +321,7 @@ def _execute(p: Plan, frame, pairs, budget: Budget, obj) -> dict:
                            f"{what}: kept the start")
             fitted = {d.name: _clean(p.start[d.name]) for d in p.dims}
             best_obj = obj_before                # the start's objective, evaluated first by the search
-            res_a, m_a, pl_a, img_a, per_a = res_b, m_b, pl_b, img_b, per_b
+            m_a, pl_a, img_a, per_a = m_b, pl_b, img_b, per_b
     defaults = p.tech.defaults()
     nondefault = {k: _clean(v) for k, v in p.fixed.items() if v != defaults.get(k)}
     new_per_it = [h["kernels_new"] for h in hist]

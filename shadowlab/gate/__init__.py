@@ -2,7 +2,7 @@
 
 Python API (what ``shadowlab gate``, the pytest plugin and other commands call)::
 
-    from shadowlab.gate import check
+    from . import check
     truth, meta = shadowlab.reference.store.load(spec)            # a stored reference
     result = check(candidate, truth, {"statistical": {}, "budget": {"flip": 0.08}},
                    target="shaded", candidate_var=None, name="contact/engine")

@@ -14,7 +14,7 @@ from ..io.exr import check_finite
 from ..metrics import compare_shaded, compare_visibility, flip, penumbra_mask, pooled_visibility
 from ..reference.truth import mitsuba_render
 from .stats import bias_test, z_test
-from .thresholds import (SHADED_METRICS, TECHNIQUE_SHADED_METRICS, VISIBILITY_METRICS, Thresholds, higher_is_better,
+from .thresholds import (SHADED_METRICS, TECHNIQUE_SHADED_METRICS, VISIBILITY_METRICS, higher_is_better,
                          parse_thresholds)
 
 __all__ = ["Check", "GateResult", "Target", "check", "truth_target", "TARGETS", "BOUND_SIGMAS", "MIN_GATE_PIXELS"]

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
-from shadowlab.errors import InputError
+from ..errors import InputError
 
 __all__ = ["write_exr", "read_exr", "rgb_channels", "stack_rgb", "split_rgb", "check_finite"]
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shadowlab.errors import InputError
+from ..errors import InputError
 
 __all__ = ["write_json_atomic", "read_json", "to_python"]
 

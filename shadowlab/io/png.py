@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shadowlab.errors import InputError
+from ..errors import InputError
 
 __all__ = ["srgb_oetf", "to_srgb8", "encode_png", "write_png", "NO_DATA"]
 

@@ -5,11 +5,11 @@ lit regions of the truth visibility and the light-leak and over-darkening rates;
 dicts of metrics a run stores per technique, light and scene.
 """
 
-from shadowlab.metrics.compare import (SHADED_KEYS, VISIBILITY_KEYS, compare_shaded, compare_visibility,
+from .compare import (SHADED_KEYS, VISIBILITY_KEYS, compare_shaded, compare_visibility,
                                        pooled_visibility)
-from shadowlab.metrics.image import (delta_e2000, delta_e2000_map, display_exposure, flip, flip_map, mae, psnr, rmse,
+from .image import (delta_e2000, delta_e2000_map, display_exposure, flip, flip_map, mae, psnr, rmse,
                                      srgb_encode, ssim, ssim_map)
-from shadowlab.metrics.masks import (PENUMBRA_HI, PENUMBRA_LO, leak_mean, leak_rate, lit_mask, overdark_mean,
+from .masks import (PENUMBRA_HI, PENUMBRA_LO, leak_mean, leak_rate, lit_mask, overdark_mean,
                                      overdark_rate, penumbra_mask, umbra_mask)
 
 __all__ = [

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from shadowlab.io.exr import check_finite
-from shadowlab.metrics import image as _im
-from shadowlab.metrics import masks as _mk
+from ..io.exr import check_finite
+from . import image as _im
+from . import masks as _mk
 
 __all__ = ["compare_visibility", "compare_shaded", "pooled_visibility", "SHADED_KEYS", "VISIBILITY_KEYS"]
 

@@ -26,8 +26,8 @@ import warnings
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from shadowlab.errors import InputError
-from shadowlab.io.exr import check_finite
+from ..errors import InputError
+from ..io.exr import check_finite
 
 __all__ = [
     "rmse", "mae", "psnr", "ssim", "ssim_map", "flip", "flip_map",

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from shadowlab.errors import InputError
-from shadowlab.io.exr import check_finite
+from ..errors import InputError
+from ..io.exr import check_finite
 
 __all__ = [
     "PENUMBRA_LO", "PENUMBRA_HI", "penumbra_mask", "umbra_mask", "lit_mask",

@@ -3,6 +3,6 @@
 >>> from shadowlab.report import build, summary_table   # build(out_dir, run) -> index.html path
 """
 
-from shadowlab.report.html import build, summary_table
+from .html import build, summary_table
 
 __all__ = ["build", "summary_table"]

@@ -15,8 +15,8 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
-from shadowlab.report.html import fmt_value, to_jsonable
-from shadowlab.io.outdir import MARKER, claim_dir, inside, marker_text
+from .html import fmt_value, to_jsonable
+from ..io.outdir import MARKER, claim_dir, inside, marker_text
 
 __all__ = ["build_frames", "frames_summary", "FRAME_METRICS"]
 

@@ -43,12 +43,12 @@ from urllib.parse import quote
 
 import numpy as np
 
-from shadowlab.errors import InputError
-from shadowlab.report import charts as _charts
-from shadowlab.report import comparator as _cmp
-from shadowlab.report import images as _im
-from shadowlab.report.lights import light_rows
-from shadowlab.io.outdir import claim_dir, write_dir
+from ..errors import InputError
+from . import charts as _charts
+from . import comparator as _cmp
+from . import images as _im
+from .lights import light_rows
+from ..io.outdir import claim_dir, write_dir
 
 __all__ = ["build", "summary_table", "stats_tables", "validate", "run_to_json", "to_jsonable", "higher_is_better"]
 

@@ -30,8 +30,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from shadowlab.errors import InputError
-from shadowlab.io.png import NO_DATA, encode_png, to_srgb8
+from ..errors import InputError
+from ..io.png import NO_DATA, encode_png, to_srgb8
 
 __all__ = [
     "LUMA",

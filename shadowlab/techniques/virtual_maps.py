@@ -386,7 +386,6 @@ def traverse(pyr: Pyramid, xi: int, t_max: int) -> Leaves:
 
 def leaf_cells(lv: Leaves, n: int) -> np.ndarray:
     """(n, n) index of the tile whose rectangle holds each grid cell, −1 none."""
-    K = int(round(math.log2(n)))
     out = np.full((n, n), -1, np.int64)
     for a, b in set(zip(lv.px.tolist(), lv.py.tolist())):
         m = np.flatnonzero((lv.px == a) & (lv.py == b))
