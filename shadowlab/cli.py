@@ -116,7 +116,9 @@ def techniques(markdown: bool = typer.Option(False, "--markdown", help="Print Ma
     for n in base.names():
         t = base.get(n)
         if markdown:
-            typer.echo(f"### `{t.name}` — {t.title}\n\n{t.summary}\nSource: {t.source}\n\n{base.param_table_markdown(t)}\n")
+            typer.echo(
+                f"### `{t.name}` — {t.title}\n\n{t.summary}\nSource: {t.source}\n\n{base.param_table_markdown(t)}\n"
+            )
             continue
         typer.echo(f"{t.name}: {t.title}   [{t.source}]")
         for p in t.params:
@@ -132,25 +134,42 @@ SchedulerOpt = typer.Option(None, "--scheduler", help="Run the jobs on an existi
 
 
 @app.command()
-def reference(scenes_: Optional[List[str]] = typer.Argument(None, metavar="SCENE...", help="Built-in scene names "
-                                                            "or paths to .toml scenes."),
-              all_: bool = typer.Option(False, "--all", help="Every built-in scene."),
-              resolution: Optional[str] = typer.Option(None, "--resolution", "-r", help="WxH (default: the scene's)."),
-              force: bool = typer.Option(False, "--force", help="Replace an existing reference."),
-              seed: int = typer.Option(0, "--seed", callback=_number(0, SEED_MAX, what="a seed"),
-                                       help=f"Random seed, 0..{SEED_MAX}."),
-              target_se: float = typer.Option(0.005, "--target-se", callback=_number(
-                  0.0, 0.5, lo_open=True, what="a standard error"), help="Per-pixel standard error to reach, (0, 0.5]."),
-              spp: int = typer.Option(256, "--spp", callback=_number(0, 1 << 20, what="a sample count"),
-                                      help="Samples per pixel of the mi.render image (0: none)."),
-              ss: int = typer.Option(1, "--ss", min=1, max=8, help="s×s shading points per pixel (supersampling)."),
-              max_rounds: int = typer.Option(64, "--max-rounds", min=1, max=4096, help="Round cap of a penumbra "
-                                             "pixel (8×8 shadow rays per round per light)."),
-              frame: Optional[int] = FrameOpt,
-              frames: Optional[str] = typer.Option(None, "--frames", help="Frames A:B of each scene's camera path, "
-                                                   "both ends included, or all (every frame of each path)."),
-              workers: Optional[int] = WorkersOpt, scheduler: Optional[str] = SchedulerOpt,
-              variant: Optional[str] = VariantOpt):
+def reference(
+    scenes_: Optional[List[str]] = typer.Argument(
+        None, metavar="SCENE...", help="Built-in scene names or paths to .toml scenes."
+    ),
+    all_: bool = typer.Option(False, "--all", help="Every built-in scene."),
+    resolution: Optional[str] = typer.Option(None, "--resolution", "-r", help="WxH (default: the scene's)."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing reference."),
+    seed: int = typer.Option(
+        0, "--seed", callback=_number(0, SEED_MAX, what="a seed"), help=f"Random seed, 0..{SEED_MAX}."
+    ),
+    target_se: float = typer.Option(
+        0.005,
+        "--target-se",
+        callback=_number(0.0, 0.5, lo_open=True, what="a standard error"),
+        help="Per-pixel standard error to reach, (0, 0.5].",
+    ),
+    spp: int = typer.Option(
+        256,
+        "--spp",
+        callback=_number(0, 1 << 20, what="a sample count"),
+        help="Samples per pixel of the mi.render image (0: none).",
+    ),
+    ss: int = typer.Option(1, "--ss", min=1, max=8, help="s×s shading points per pixel (supersampling)."),
+    max_rounds: int = typer.Option(
+        64, "--max-rounds", min=1, max=4096, help="Round cap of a penumbra pixel (8×8 shadow rays per round per light)."
+    ),
+    frame: Optional[int] = FrameOpt,
+    frames: Optional[str] = typer.Option(
+        None,
+        "--frames",
+        help="Frames A:B of each scene's camera path, both ends included, or all (every frame of each path).",
+    ),
+    workers: Optional[int] = WorkersOpt,
+    scheduler: Optional[str] = SchedulerOpt,
+    variant: Optional[str] = VariantOpt,
+):
     """Render and store the Mitsuba ground truth of scenes (of each frame of a camera path: --frames)."""
     from .cluster import open_executor
     from .pipeline import parse_resolution, reference_batch
@@ -178,7 +197,9 @@ def _reference_done(path, meta):
                f"{meta['samples']['shadow_rays']:,} shadow rays, {meta['wall_time_s']:.1f} s")
     per = (meta.get("stats") or {}).get("per_light") or {}
     if len(per) > 1:
-        typer.echo("  per light: " + ", ".join(f"{n} {c['time_s']:.2f} s ({c['shadow_rays']:,} rays)" for n, c in per.items()))
+        typer.echo(
+            "  per light: " + ", ".join(f"{n} {c['time_s']:.2f} s ({c['shadow_rays']:,} rays)" for n, c in per.items())
+        )
     if (meta.get("stats") or {}).get("allocation") == "contribution":
         typer.echo("  allocation: contribution (each light's target error by its share of a pixel's light; the "
                    "shaded image keeps the target relative to the pixel's light)")
@@ -264,37 +285,69 @@ def demo(out: str = typer.Option("reports/demo", "--out", "-o"), force: bool = F
 
 
 @app.command()
-def fit(scenes_: List[str] = typer.Argument(..., metavar="SCENE...", help="Built-in scene names or paths to .toml "
-                                             "scenes; several: one preset minimising the mean loss over them."),
-        technique: Optional[str] = typer.Option(None, "--technique", "-t", help="The technique to fit (all: as --all)."),
-        params: Optional[str] = typer.Option(None, "--params", "-p", help="Comma-separated parameters to fit "
-                                             "(default: the differentiable ones; hard: biases; pcf: kernel, softness)."),
-        method: str = typer.Option("auto", "--method", help="auto | adam | golden | grid (auto: Adam on the "
-                                   "differentiable parameters, derivative-free search on the others)."),
-        loss: Optional[str] = typer.Option(None, "--loss", help="rmse_penumbra | rmse | flip (default: "
-                                           "rmse_penumbra; rmse for hard, whose biases act outside the penumbra)."),
-        all_: bool = typer.Option(False, "--all", help="Fit every technique's default parameters; one table."),
-        set_: List[str] = typer.Option([], "--set", help="TECHNIQUE.PARAM=VALUE: fixed values and start values."),
-        preset: Optional[str] = typer.Option(None, "--preset", help="Start from a preset file (--set overrides it)."),
-        range_: List[str] = typer.Option([], "--range", help="[TECHNIQUE.]PARAM=LO:HI: the window searched."),
-        steps: int = typer.Option(25, "--steps", help="Adam steps."),
-        lr: float = typer.Option(0.1, "--lr", help="Adam learning rate, as a fraction of the window."),
-        evals: int = typer.Option(20, "--evals", help="Evaluations per 1-D golden-section search."),
-        grid_points: int = typer.Option(21, "--grid-points", help="Grid points per parameter (--method grid)."),
-        rounds: int = typer.Option(0, "--rounds", help="Coordinate rounds over the parameters (0: automatic)."),
-        out: Optional[str] = typer.Option(None, "--out", "-o", help="Report directory (default reports/fit/SCENE-TECHNIQUE, "
-                                          "several scenes: SCENE1+SCENE2…-TECHNIQUE)."),
-        save_preset: Optional[str] = typer.Option(None, "--save-preset", help="Also write the fitted preset to this "
-                                                  "file (an existing file only if shadowlab fit wrote it, or --force)."),
-        preset_name: Optional[str] = typer.Option(None, "--preset-name", help="Name of the saved preset."),
-        resolution: Optional[str] = typer.Option(None, "--resolution", "-r"),
-        force: bool = typer.Option(False, "--force", help="Replace a --save-preset file and write into an --out "
-                                   "directory that shadowlab did not create."),
-        frame: Optional[int] = FrameOpt,
-        frames: Optional[str] = typer.Option(None, "--frames", help="A:B, frames of the camera path (both ends "
-                                             "included): one preset minimising the mean loss over them."),
-        workers: Optional[int] = WorkersOpt, scheduler: Optional[str] = SchedulerOpt,
-        variant: Optional[str] = VariantOpt):
+def fit(
+    scenes_: List[str] = typer.Argument(
+        ...,
+        metavar="SCENE...",
+        help="Built-in scene names or paths to .toml scenes; several: one preset minimising the mean loss over them.",
+    ),
+    technique: Optional[str] = typer.Option(None, "--technique", "-t", help="The technique to fit (all: as --all)."),
+    params: Optional[str] = typer.Option(
+        None,
+        "--params",
+        "-p",
+        help="Comma-separated parameters to fit "
+        "(default: the differentiable ones; hard: biases; pcf: kernel, softness).",
+    ),
+    method: str = typer.Option(
+        "auto",
+        "--method",
+        help="auto | adam | golden | grid (auto: Adam on the "
+        "differentiable parameters, derivative-free search on the others).",
+    ),
+    loss: Optional[str] = typer.Option(
+        None,
+        "--loss",
+        help="rmse_penumbra | rmse | flip (default: "
+        "rmse_penumbra; rmse for hard, whose biases act outside the penumbra).",
+    ),
+    all_: bool = typer.Option(False, "--all", help="Fit every technique's default parameters; one table."),
+    set_: List[str] = typer.Option([], "--set", help="TECHNIQUE.PARAM=VALUE: fixed values and start values."),
+    preset: Optional[str] = typer.Option(None, "--preset", help="Start from a preset file (--set overrides it)."),
+    range_: List[str] = typer.Option([], "--range", help="[TECHNIQUE.]PARAM=LO:HI: the window searched."),
+    steps: int = typer.Option(25, "--steps", help="Adam steps."),
+    lr: float = typer.Option(0.1, "--lr", help="Adam learning rate, as a fraction of the window."),
+    evals: int = typer.Option(20, "--evals", help="Evaluations per 1-D golden-section search."),
+    grid_points: int = typer.Option(21, "--grid-points", help="Grid points per parameter (--method grid)."),
+    rounds: int = typer.Option(0, "--rounds", help="Coordinate rounds over the parameters (0: automatic)."),
+    out: Optional[str] = typer.Option(
+        None,
+        "--out",
+        "-o",
+        help="Report directory (default reports/fit/SCENE-TECHNIQUE, several scenes: SCENE1+SCENE2…-TECHNIQUE).",
+    ),
+    save_preset: Optional[str] = typer.Option(
+        None,
+        "--save-preset",
+        help="Also write the fitted preset to this file (an existing file only if shadowlab fit wrote it, or --force).",
+    ),
+    preset_name: Optional[str] = typer.Option(None, "--preset-name", help="Name of the saved preset."),
+    resolution: Optional[str] = typer.Option(None, "--resolution", "-r"),
+    force: bool = typer.Option(
+        False,
+        "--force",
+        help="Replace a --save-preset file and write into an --out directory that shadowlab did not create.",
+    ),
+    frame: Optional[int] = FrameOpt,
+    frames: Optional[str] = typer.Option(
+        None,
+        "--frames",
+        help="A:B, frames of the camera path (both ends included): one preset minimising the mean loss over them.",
+    ),
+    workers: Optional[int] = WorkersOpt,
+    scheduler: Optional[str] = SchedulerOpt,
+    variant: Optional[str] = VariantOpt,
+):
     """Fit technique parameters to the ground truth; write DIR/fit.json, index.html, summary.md, preset.toml.
     Several scenes: one preset for all of them, each scene's loss beside it; each evaluation is one job
     per scene frame (--workers / --scheduler: on a Dask cluster, same results)."""
@@ -348,13 +401,15 @@ def sweep(scenes_: List[str] = typer.Argument(..., metavar="SCENE...", help="Bui
 
 
 @app.command()
-def export(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
-           out: str = typer.Option(..., "--out", "-o", help="Directory to write (scene.xml, meshes/, camera.json, ...)."),
-           resolution: Optional[str] = typer.Option(None, "--resolution", "-r", help="WxH (default: the scene's)."),
-           segments: int = typer.Option(64, "--segments", help="Tessellation of spheres, cylinders and disks."),
-           spp: int = typer.Option(64, "--spp", help="Default samples per pixel written into scene.xml."),
-           force: bool = typer.Option(False, "--force", help="Replace the exported files in an existing directory."),
-           variant: Optional[str] = VariantOpt):
+def export(
+    scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
+    out: str = typer.Option(..., "--out", "-o", help="Directory to write (scene.xml, meshes/, camera.json, ...)."),
+    resolution: Optional[str] = typer.Option(None, "--resolution", "-r", help="WxH (default: the scene's)."),
+    segments: int = typer.Option(64, "--segments", help="Tessellation of spheres, cylinders and disks."),
+    spp: int = typer.Option(64, "--spp", help="Default samples per pixel written into scene.xml."),
+    force: bool = typer.Option(False, "--force", help="Replace the exported files in an existing directory."),
+    variant: Optional[str] = VariantOpt,
+):
     """Export a scene for another renderer: Mitsuba XML, PLY meshes, camera.json, lights.json."""
     from .exchange.export import export_scene
     from .pipeline import parse_resolution
@@ -368,24 +423,40 @@ def export(scene: str = typer.Argument(..., help="Built-in scene name or path to
 
 
 @app.command()
-def ingest(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
-           image: str = typer.Argument(..., help="The EXR image rendered elsewhere."),
-           channel: List[str] = typer.Option([], "--channel", "-c", help="A light's visibility channel, NAME or "
-                                             "NAME=LIGHT; repeatable."),
-           shaded: bool = typer.Option(False, "--shaded", help="The image is RGB direct light (R,G,B or LAYER.R|G|B)."),
-           layer: Optional[str] = typer.Option(None, "--layer", help="With --shaded: the RGB layer's name."),
-           against: Optional[str] = typer.Option(None, "--against", help="Truth compared with: V (default) or A "
-                                                 "for --channel; shaded (default) or mitsuba for --shaded."),
-           resolution: Optional[str] = typer.Option(None, "--resolution", "-r", help="The reference's WxH "
-                                                    "(default: the image's size)."),
-           out: Optional[str] = typer.Option(None, "--out", "-o", help="Report directory (default "
-                                             "reports/ingest/SCENE-IMAGE, -2, -3, … when it exists: a new ingest "
-                                             "never replaces the previous one)."),
-           gate: Optional[str] = typer.Option(None, "--gate", help="Gate file to run on the image (exit 1 on failure)."),
-           label: List[str] = typer.Option([], "--label", help="TEXT: the image's name in the report (default: its "
-                                           "file name); CHANNEL=TEXT: a channel's title; repeatable."),
-           force: bool = ForceOpt,
-           variant: Optional[str] = VariantOpt):
+def ingest(
+    scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene."),
+    image: str = typer.Argument(..., help="The EXR image rendered elsewhere."),
+    channel: List[str] = typer.Option(
+        [], "--channel", "-c", help="A light's visibility channel, NAME or NAME=LIGHT; repeatable."
+    ),
+    shaded: bool = typer.Option(False, "--shaded", help="The image is RGB direct light (R,G,B or LAYER.R|G|B)."),
+    layer: Optional[str] = typer.Option(None, "--layer", help="With --shaded: the RGB layer's name."),
+    against: Optional[str] = typer.Option(
+        None,
+        "--against",
+        help="Truth compared with: V (default) or A for --channel; shaded (default) or mitsuba for --shaded.",
+    ),
+    resolution: Optional[str] = typer.Option(
+        None, "--resolution", "-r", help="The reference's WxH (default: the image's size)."
+    ),
+    out: Optional[str] = typer.Option(
+        None,
+        "--out",
+        "-o",
+        help="Report directory (default "
+        "reports/ingest/SCENE-IMAGE, -2, -3, … when it exists: a new ingest "
+        "never replaces the previous one).",
+    ),
+    gate: Optional[str] = typer.Option(None, "--gate", help="Gate file to run on the image (exit 1 on failure)."),
+    label: List[str] = typer.Option(
+        [],
+        "--label",
+        help="TEXT: the image's name in the report (default: its "
+        "file name); CHANNEL=TEXT: a channel's title; repeatable.",
+    ),
+    force: bool = ForceOpt,
+    variant: Optional[str] = VariantOpt,
+):
     """Compare an image rendered elsewhere with the stored ground truth; write a report."""
     from .exchange.ingest import default_out
     from .exchange.ingest import ingest as run_ingest
@@ -434,14 +505,21 @@ def gate(gatefile: str = typer.Argument(..., help="Gate file (TOML), e.g. refere
 
 
 @app.command()
-def bench(out: str = typer.Option("reports/bench", "--out", "-o"),
-          quick: bool = typer.Option(False, "--quick", help="Small sizes (a smoke run, not for figures)."),
-          only: Optional[str] = typer.Option(None, "--only", help="Run one part: sdf (SDF soft shadows, sdf.md), cascades (cascaded shadow maps, cascades.md), "
-                                "virtual (virtual shadow maps, virtual.md), dpsv (shadow maps fused with deep partitioned shadow volumes, dpsv.md), "
-                                "ssss (layered screen-space soft shadows against kernel and lights, ssss.md), "
-                                "scaling (the Dask executor on 1, 2, 4, 8 workers, scaling.md; not in the full run) or truth (the ground "
-                                "truth's throughput against raw ray_test, truth.md)."),
-          variant: Optional[str] = VariantOpt):
+def bench(
+    out: str = typer.Option("reports/bench", "--out", "-o"),
+    quick: bool = typer.Option(False, "--quick", help="Small sizes (a smoke run, not for figures)."),
+    only: Optional[str] = typer.Option(
+        None,
+        "--only",
+        help="Run one part: sdf (SDF soft shadows, sdf.md), cascades (cascaded shadow maps, cascades.md), "
+        "virtual (virtual shadow maps, virtual.md), dpsv (shadow maps fused with deep partitioned shadow volumes, "
+        "dpsv.md), "
+        "ssss (layered screen-space soft shadows against kernel and lights, ssss.md), "
+        "scaling (the Dask executor on 1, 2, 4, 8 workers, scaling.md; not in the full run) or truth (the ground "
+        "truth's throughput against raw ray_test, truth.md).",
+    ),
+    variant: Optional[str] = VariantOpt,
+):
     """Measure ground-truth throughput and technique compile / warm run times."""
     from .bench import run as run_bench
     _init(variant)

@@ -189,8 +189,9 @@ def reference_jobs(scenes: list[str], resolution=None, frames=None, *, frame: in
             todo = frame_list(sc.spec, frame, frames) or [None]
         for f in todo:
             s_ = sc if f is None else sc.at_frame(f)
-            store.check_writable(store.path_for(s_.name, s_.resolution, base, create=True, frame=s_.frame), force, s_.name,
-                                 s_.resolution)
+            store.check_writable(
+                store.path_for(s_.name, s_.resolution, base, create=True, frame=s_.frame), force, s_.name, s_.resolution
+            )
             jobs.append(ReferenceJob(scene, tuple(sc.resolution), f, seed, target_se, strata, max_rounds, spp, ss,
                                      force, root, run, progress))
     return jobs
@@ -243,16 +244,32 @@ def _render_reference(sc, *, seed, target_se, strata, max_rounds, spp, progress,
                                  progress=bar.update)
     wall = time.perf_counter() - t0
     info = backend.machine_info()
-    meta = {"scene": sc.name, "scene_hash": sc.spec.digest(), "resolution": list(sc.resolution),
-            **({} if sc.frame is None else {"frame": sc.frame, "frames": sc.spec.frames}),
-            "mitsuba": info["mitsuba"], "drjit": info["drjit"], "variant": info["variant"], "seed": seed, "supersampling": ss,
-            "wall_time_s": wall, "max_std_error": truth.stats["max_std_error"],
-            "samples": {"strata": f"{strata}x{strata} per round", "target_se": target_se, "max_rounds": max_rounds,
-                        "shadow_rays": truth.stats["shadow_rays"],
-                        "mean_rays_per_pixel": {n: float(l.samples[truth.mask].mean()) if truth.mask.any() else 0.0
-                                                for n, l in truth.lights.items()},
-                        "mitsuba_spp": spp},
-            "lights": [l.name for l in sc.lights], "stats": truth.stats, "machine": info}
+    meta = {
+        "scene": sc.name,
+        "scene_hash": sc.spec.digest(),
+        "resolution": list(sc.resolution),
+        **({} if sc.frame is None else {"frame": sc.frame, "frames": sc.spec.frames}),
+        "mitsuba": info["mitsuba"],
+        "drjit": info["drjit"],
+        "variant": info["variant"],
+        "seed": seed,
+        "supersampling": ss,
+        "wall_time_s": wall,
+        "max_std_error": truth.stats["max_std_error"],
+        "samples": {
+            "strata": f"{strata}x{strata} per round",
+            "target_se": target_se,
+            "max_rounds": max_rounds,
+            "shadow_rays": truth.stats["shadow_rays"],
+            "mean_rays_per_pixel": {
+                n: float(l.samples[truth.mask].mean()) if truth.mask.any() else 0.0 for n, l in truth.lights.items()
+            },
+            "mitsuba_spp": spp,
+        },
+        "lights": [l.name for l in sc.lights],
+        "stats": truth.stats,
+        "machine": info,
+    }
     meta.update(sc.mitsuba_notes())  # e.g. alpha-tested casters that mi.render's direct integrator ignores
     if sc.kind == "sdf":
         meta.update(truth=sdf_truth.TRUTH_KIND, not_mitsuba_truth=sdf_truth.NOTE)
@@ -350,15 +367,26 @@ def _compare_at(sc, scene, techniques, overrides, base, render_missing, progress
     truth, meta = loaded or _truth_of(sc, scene, base, render_missing, progress)
     frame = make_frame(sc, ss=int(meta.get("supersampling", 1)), seed=int(meta.get("seed", 0)))
     results = run_techniques(frame, techniques, overrides)
-    run = {"scene": sc.name, "resolution": list(sc.resolution),
-           "reference": {"spp": float(np.mean(list(meta["samples"]["mean_rays_per_pixel"].values()))),
-                         "rays_per_pixel": meta["samples"]["mean_rays_per_pixel"], "max_std_error": meta["max_std_error"],
-                         "shadow_rays": meta["samples"]["shadow_rays"], "seed": meta.get("seed"),
-                         "supersampling": int(meta.get("supersampling", 1)),
-                         "path": str(store.path_for(sc.name, sc.resolution, base, frame=sc.frame))},
-           "lights": [l.name for l in sc.lights], "techniques": {},
-           "images": {"truth": {"shaded": truth.shaded, "vis": {n: lt.V for n, lt in truth.lights.items()}},
-                      "techniques": {}}, "machine": backend.machine_info()}
+    run = {
+        "scene": sc.name,
+        "resolution": list(sc.resolution),
+        "reference": {
+            "spp": float(np.mean(list(meta["samples"]["mean_rays_per_pixel"].values()))),
+            "rays_per_pixel": meta["samples"]["mean_rays_per_pixel"],
+            "max_std_error": meta["max_std_error"],
+            "shadow_rays": meta["samples"]["shadow_rays"],
+            "seed": meta.get("seed"),
+            "supersampling": int(meta.get("supersampling", 1)),
+            "path": str(store.path_for(sc.name, sc.resolution, base, frame=sc.frame)),
+        },
+        "lights": [l.name for l in sc.lights],
+        "techniques": {},
+        "images": {
+            "truth": {"shaded": truth.shaded, "vis": {n: lt.V for n, lt in truth.lights.items()}},
+            "techniques": {},
+        },
+        "machine": backend.machine_info(),
+    }
     run["light_info"] = light_info(sc.spec.lights)
     if sc.kind == "mitsuba":   # an SDF G-buffer's shape ids index SDF primitives, not Mitsuba shapes
         run["images"]["emitter"] = emitter_pixels(frame.gbuffer.shape_id, sc.light_shapes)
@@ -467,13 +495,21 @@ def compare(scene: str, techniques: list[str], sets: list[str] | None = None, ou
             fixed, first = fr, results
         if out is not None:
             build(Path(out) / f"frame_{s_.frame:04d}", run, force=force, protected=[store_root])
-    summary = {"scene": sc.name, "resolution": list(sc.resolution), "frames": sel, "techniques": list(techniques),
-               "lights": [l.name for l in sc.lights],
-               "per_frame": {str(r["frame"] if "frame" in r else 0): {n: {"metrics": t["metrics"], "time_s": t["time_s"]}
-                                                                      for n, t in r["techniques"].items()}
-                             for r in runs},
-               "reports": {str(f): f"frame_{f:04d}/index.html" for f in sel} if out is not None else {},
-               "params": {n: runs[0]["techniques"][n]["params"] for n in techniques}}
+    summary = {
+        "scene": sc.name,
+        "resolution": list(sc.resolution),
+        "frames": sel,
+        "techniques": list(techniques),
+        "lights": [l.name for l in sc.lights],
+        "per_frame": {
+            str(r["frame"] if "frame" in r else 0): {
+                n: {"metrics": t["metrics"], "time_s": t["time_s"]} for n, t in r["techniques"].items()
+            }
+            for r in runs
+        },
+        "reports": {str(f): f"frame_{f:04d}/index.html" for f in sel} if out is not None else {},
+        "params": {n: runs[0]["techniques"][n]["params"] for n in techniques},
+    }
     if len(scenes) >= 2:
         summary["shimmer"] = shimmer(scenes, fixed, first)
     if out is not None:

@@ -56,7 +56,9 @@ def test_gl_and_d3d_depth_ranges(near, far):
         c = cam.world_to_clip("d3d") @ p
         assert c[2] / c[3] == pytest.approx(d3d, abs=1e-6)
         assert c[3] == pytest.approx(z)
-        assert cam.ndc_depth(z) == pytest.approx(d3d, abs=1e-9) and cam.ndc_depth(z, "gl") == pytest.approx(gl, abs=1e-9)
+        assert cam.ndc_depth(z) == pytest.approx(d3d, abs=1e-9) and cam.ndc_depth(z, "gl") == pytest.approx(
+            gl, abs=1e-9
+        )
         assert cam.linear_depth(cam.ndc_depth(z)) == pytest.approx(z, rel=1e-6)
     # the D3D pair and the Mitsuba-camera-space pair are one projection
     assert np.allclose(cam.proj_d3d() @ cam.view_d3d, cam.camera_to_clip() @ cam.world_to_camera)

@@ -77,7 +77,9 @@ def test_one_cascade_with_the_scene_fit_is_hard_bit_for_bit(outdoor):
 
 def test_interval_selection_follows_the_splits(outdoor):
     _, frame = outdoor
-    r = base.get("csm").render(frame, {"cascades": 4, "split": "log", "shadow_near": 2.0, "blend": 0.0, "filter": "hard"})
+    r = base.get("csm").render(
+        frame, {"cascades": 4, "split": "log", "shadow_near": 2.0, "blend": 0.0, "filter": "hard"}
+    )
     C = np.asarray(r.stats["splits"])
     z = _z(frame)
     valid = frame.gbuffer.mask.reshape(-1)

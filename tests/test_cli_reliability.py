@@ -87,7 +87,8 @@ _WRAPPER = ("import sys\nimport shadowlab.cli as c\nprint('ready', flush=True)\n
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_signal_stops_a_running_reference_with_one_line_and_nothing_stored(tmp_path, sig, code):
     """A real `shadowlab reference` process (its imports done, then the command running: a slow
-    truth, target error 0.0002 and a 4096-round cap on 256²: seconds of rendering) gets the signal: exit 128 + signal, one line on stderr, no
+    truth, target error 0.0002 and a 4096-round cap on 256²: seconds of rendering) gets the signal: exit 128 + signal,
+    one line on stderr, no
     traceback, and the store holds nothing (no reference, no temporary directory)."""
     # the truth's few-wavefront sampler renders a 64² one within the 1.5 s below (on 2 cores too), and
     # a GPU is faster still: 256² here, 1024² on cuda_ad_rgb

@@ -33,7 +33,9 @@ RES = (64, 48)  # not square: a swapped aspect ratio, fov axis or W/H shows
 
 
 def _digest(d: Path) -> dict:
-    return {str(p.relative_to(d)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(d.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(d)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(d.rglob("*")) if p.is_file()
+    }
 
 
 @pytest.fixture(scope="module")
@@ -247,7 +249,9 @@ def test_lights_json_for_every_light_kind(tmp_path, mitsuba_backend):
     assert np.allclose(pose[:3, 3], [1, 4, 0], atol=1e-6)
     assert np.allclose(pose[:3, 2], -np.array([1.0, 4.0, 0.0]) / math.sqrt(17), atol=1e-6)  # faces the target
     tw = np.array(r["to_world"])
-    assert np.linalg.norm(tw[:3, 0]) == pytest.approx(0.4, rel=1e-6) and np.linalg.norm(tw[:3, 1]) == pytest.approx(0.2, rel=1e-6)
+    assert np.linalg.norm(tw[:3, 0]) == pytest.approx(0.4, rel=1e-6) and np.linalg.norm(tw[:3, 1]) == pytest.approx(
+        0.2, rel=1e-6
+    )
     assert lights["d"]["size"] == {"radius": 0.3} and lights["d"]["area_m2"] == pytest.approx(math.pi * 0.09)
     assert lights["s"]["emission"]["value"] == pytest.approx(60 / (math.pi * 4 * math.pi * 0.04))
     assert lights["p"]["delta"] and lights["p"]["ply"] is None

@@ -114,8 +114,11 @@ def _check(f, d, p, pre, lights):
         assert f["metrics_after"][k] == pytest.approx(p["metrics"][k], rel=1e-9, abs=1e-12)
         assert f["metrics_before"][k] == pytest.approx(d["metrics"][k], rel=1e-9, abs=1e-12)
     assert f["loss_after"] <= f["loss_before"] + TOL
-    print(f["params"]["light_scale"]["fitted"], {k: (d["metrics"][k], p["metrics"][k]) for k in ("rmse", "rmse_penumbra")},
-          f["notes"])
+    print(
+        f["params"]["light_scale"]["fitted"],
+        {k: (d["metrics"][k], p["metrics"][k]) for k in ("rmse", "rmse_penumbra")},
+        f["notes"],
+    )
 
 
 def test_two_lights_fit_is_never_worse_than_its_start_in_compare(mitsuba_backend, tmp_path):

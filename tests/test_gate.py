@@ -52,7 +52,9 @@ def refstore(tmp_path_factory, mitsuba_backend):
 
 
 def _digest(d: Path) -> dict:
-    return {str(p.relative_to(d)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(d.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(d)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(d.rglob("*")) if p.is_file()
+    }
 
 
 # ----------------------------------------------------------------------------- closed forms
@@ -299,7 +301,8 @@ statistical = {}
     (_GOOD.replace("statistical = {}", "statistical = { ptol = \"small\" }"), "ptol must be a number"),
     (_GOOD.replace("statistical = {}", ""), "statistical test, an error budget or both"),
     (_GOOD.replace("statistical = {}", "budget = { ssim = 0.9 }"), "do not exist for target 'visibility'"),
-    (_GOOD.replace('target = "visibility"', 'target = "shaded"').replace("statistical = {}", "budget = { leak_rate = 0.1 }"),
+    (_GOOD.replace('target = "visibility"', 'target = "shaded"')
+     .replace("statistical = {}", "budget = { leak_rate = 0.1 }"),
      "need a technique candidate"),
     (_GOOD.replace('target = "visibility"', 'target = "depth"'), "target = 'depth'"),
     (_GOOD.replace('target = "visibility"', 'target = "visibility"\nlight = "sun"'), "light 'sun' is not in scene"),

@@ -166,7 +166,9 @@ def test_a(shadowlab_gate):
     monkeypatch.setenv("STAMP", "scene-v2")
     res = suite.runpytest_subprocess()
     res.assert_outcomes(failed=1)
-    res.stdout.fnmatch_lines(["*baseline*disc.exr is stale: it was made from stamp 'scene-v1', this image from 'scene-v2'*"])
+    res.stdout.fnmatch_lines(
+        ["*baseline*disc.exr is stale: it was made from stamp 'scene-v1', this image from 'scene-v2'*"]
+    )
     monkeypatch.setenv("STAMP", "scene-v1")
     monkeypatch.setenv("S", "24")
     res = suite.runpytest_subprocess()

@@ -47,7 +47,9 @@ LIGHT = "panel"
 
 
 def _digest(d: Path) -> dict:
-    return {str(p.relative_to(d)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(d.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(d)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(d.rglob("*")) if p.is_file()
+    }
 
 
 def cli(*args, env=None):
@@ -175,7 +177,9 @@ def test_ingest_gate_passes_with_the_images_own_error_and_fails_without(proof, t
     # a visibility shifted by one row is a convention error: the gate catches it
     ch = read_exr(proof["image"])
     shifted = tmp_path / "shifted.exr"
-    write_exr(shifted, {"shadow.panel": np.roll(ch["shadow.panel"], 1, axis=0), "shadow.panel.se": ch["shadow.panel.se"]})
+    write_exr(
+        shifted, {"shadow.panel": np.roll(ch["shadow.panel"], 1, axis=0), "shadow.panel.se": ch["shadow.panel.se"]}
+    )
     run = ingest(SCENE, shifted, channels=["shadow.panel"], base=proof["base"], gate=gate)
     assert not run["gate"]["passed"]
     assert any(f.endswith("stat.pixels") for f in run["gate"]["failed"])

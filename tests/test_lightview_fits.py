@@ -96,7 +96,9 @@ def test_frustum_slice_covers_the_slice(frame, bound, snap):
 def _translated(scene, delta):
     """The same scene seen by a camera moved by ``delta`` (position and target)."""
     cam = scene.spec.camera
-    moved = dataclasses.replace(cam, position=tuple(np.add(cam.position, delta)), target=tuple(np.add(cam.target, delta)))
+    moved = dataclasses.replace(
+        cam, position=tuple(np.add(cam.position, delta)), target=tuple(np.add(cam.target, delta))
+    )
     sc = copy.copy(scene)
     sc.spec = dataclasses.replace(scene.spec, camera=moved)
     return sc

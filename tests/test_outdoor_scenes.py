@@ -159,7 +159,9 @@ def test_boulevard_path_moves_by_sub_texel_and_multi_texel_steps(scenes):
     cams = _path_cameras("boulevard")
     assert len(cams) >= 16
     # the static camera is frame 0 (its stored reference is frame 0's)
-    assert np.allclose(cams[0][0], cam0.position, atol=0, rtol=0) and np.allclose(cams[0][1], cam0.target, atol=0, rtol=0)
+    assert np.allclose(cams[0][0], cam0.position, atol=0, rtol=0) and np.allclose(
+        cams[0][1], cam0.target, atol=0, rtol=0
+    )
     # the near cascade: 3 practical splits (λ = 0.6) over [near, far], a 1024² map fitted to the slice's sphere
     C = _practical_splits(cam0.near_clip, cam0.far_clip)
     assert math.isclose(C[0], cam0.near_clip) and math.isclose(C[3], cam0.far_clip)

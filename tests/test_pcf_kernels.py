@@ -114,7 +114,9 @@ def test_declarations():
     assert t.param("pattern").choices == pcf_mod.PATTERNS and t.param("pattern").default == "grid"
     assert t.param("bilinear").default is False and t.param("kernel").hi == 9
     for p in t.params:
-        assert p.doc and p.source.startswith("[Buljan 2020, §" if p.name not in ("receiver_plane", "grazing_slope_bias") else "[Isidoro 2006]")
+        assert p.doc and p.source.startswith(
+            "[Buljan 2020, §" if p.name not in ("receiver_plane", "grazing_slope_bias") else "[Isidoro 2006]"
+        )
     doc = pcf_mod.__doc__
     assert "[Buljan 2020, §3.2]" in doc                   # the source, by its bibliography key
     for pat in pcf_mod.PATTERNS:
@@ -232,10 +234,14 @@ def test_new_softness_seed_kernel_or_sigma_reuses_the_compiled_kernel(planes):
     pcf = get("pcf")
     first = {"rotated": {"pattern": "rotated_poisson", "seed": 1, "softness": 1.0, "kernel": 3},
              "table": {"pattern": "gaussian", "kernel": 3, "bilinear": True}}
-    later = {"rotated": [{"pattern": "rotated_poisson", "seed": 99, "softness": 2.75, "kernel": 7, "rotated_samples": 64}],
-             "table": [{"pattern": "gaussian", "kernel": 9, "sigma": 1.7, "softness": 3.5, "bilinear": True},
-                       {"pattern": "poisson64", "kernel": 1, "bilinear": True},
-                       {"pattern": "grid", "kernel": 5, "softness": 0.5, "bilinear": True}]}
+    later = {
+        "rotated": [{"pattern": "rotated_poisson", "seed": 99, "softness": 2.75, "kernel": 7, "rotated_samples": 64}],
+        "table": [
+            {"pattern": "gaussian", "kernel": 9, "sigma": 1.7, "softness": 3.5, "bilinear": True},
+            {"pattern": "poisson64", "kernel": 1, "bilinear": True},
+            {"pattern": "grid", "kernel": 5, "softness": 0.5, "bilinear": True},
+        ],
+    }
     for key, p0 in first.items():
         pcf.render(frame, p0)                                       # compile (or load) once
         dr.set_flag(dr.JitFlag.KernelHistory, True)

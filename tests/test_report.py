@@ -200,7 +200,9 @@ def test_bad_run_into_missing_dir_creates_nothing(tmp_path):
 
 def _tables(html: str) -> list[list[str]]:
     """The header cells of each metrics table of the page, in order."""
-    return [re.findall(r"<th>([^<]*)</th>", t) for t in re.findall(r'<table class="metrics"><thead>(.*?)</thead>', html)]
+    return [
+        re.findall(r"<th>([^<]*)</th>", t) for t in re.findall(r'<table class="metrics"><thead>(.*?)</thead>', html)
+    ]
 
 
 def _scale_after(html: str, alt: str) -> float:

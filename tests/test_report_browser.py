@@ -223,7 +223,10 @@ def test_the_page_loads_without_errors_and_the_comparator_is_built(report, brows
     assert browser.js("document.querySelectorAll('svg.chart circle').length") >= 3
     # the page fits a 1400 px window: no horizontal scrolling
     assert browser.js("document.documentElement.scrollWidth") <= WIDTH
-    assert browser.js("Math.max(...[...document.querySelectorAll('table')].map(t => t.getBoundingClientRect().right))") <= WIDTH
+    assert (
+        browser.js("Math.max(...[...document.querySelectorAll('table')].map(t => t.getBoundingClientRect().right))")
+        <= WIDTH
+    )
 
 
 def test_the_comparator_flips_by_key_and_hover_and_zooms_nearest_neighbour(report, browser):

@@ -144,7 +144,9 @@ def test_hard_equals_point_light_visibility_except_within_one_pixel_of_edges(sim
     point = fr.image(dr.select(sc.mi_scene.ray_test(ray, gb.valid), 0.0, 1.0))
     k = 2 * EDGE + 1
     sid = gb.shape_id[..., 0].astype(np.float32)
-    near_edge = (maximum_filter(point, k) != minimum_filter(point, k)) | (maximum_filter(sid, k) != minimum_filter(sid, k))
+    near_edge = (maximum_filter(point, k) != minimum_filter(point, k)) | (
+        maximum_filter(sid, k) != minimum_filter(sid, k)
+    )
     far = simple["mask"] & ~near_edge
     assert far.sum() > 0.8 * simple["mask"].sum() and (point[far] == 0).sum() > 300
     hard, _ = vis(simple, "sdf_hard")
@@ -207,7 +209,9 @@ def test_light_leaks_through_the_thin_plate_not_the_thick_slab(mitsuba_backend, 
     assert thin.sum() > 100 and thick.sum() > 100
     v, _ = vis(case, "sdf_linear")
     mc, _ = vis(case, "sdf_mc")
-    print(f"sdf_thin umbra: thin plate {v[thin].mean():.3f}, thick slab {v[thick].mean():.3f}, mc {mc[thin].mean():.3f}")
+    print(
+        f"sdf_thin umbra: thin plate {v[thin].mean():.3f}, thick slab {v[thick].mean():.3f}, mc {mc[thin].mean():.3f}"
+    )
     assert v[thin].mean() > 0.3          # measured 0.47: the cone passes through the 2 cm plate
     assert v[thick].mean() < 0.06        # measured 0.03 (≤ ε: the march stops at τ ≤ ε)
     assert mc[thin].mean() < 0.01        # sphere-traced rays do not leak

@@ -218,7 +218,13 @@ def test_declarations_are_shared_and_complete():
     assert all(any(p is q for q in pcf.params) for p in BIAS_PARAMS)
     assert {"kernel", "softness"} <= {p.name for p in pcf.params}
     for p in pcf.params:
-        assert p.doc and p.source.startswith("[Buljan 2020, §" if p.name not in ("receiver_plane", "grazing_slope_bias") else "[Isidoro 2006]") and p.kind in ("float", "int", "bool", "choice")
+        assert (
+            p.doc
+            and p.source.startswith(
+                "[Buljan 2020, §" if p.name not in ("receiver_plane", "grazing_slope_bias") else "[Isidoro 2006]"
+            )
+            and p.kind in ("float", "int", "bool", "choice")
+        )
     table = param_table_markdown(pcf)
     assert "`slope_scaled_depth_bias`" in table and "`softness`" in table
     import shadowlab.techniques.pcf as pcf_module

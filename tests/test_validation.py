@@ -117,7 +117,10 @@ def test_delta_and_area_emission_keys_must_match_the_radius():
            "no radiance on a point light of radius 0")
     _fails(_scene(lambda d: d["lights"].__setitem__(0, {**point, "radius": 0.2, "intensity": 3.0})),
            "no intensity on a point light of radius 0.2")
-    assert parse(_scene(lambda d: d["lights"].__setitem__(0, {**point, "intensity": 3.0})), "s.toml").lights[0].intensity == 3.0
+    assert (
+        parse(_scene(lambda d: d["lights"].__setitem__(0, {**point, "intensity": 3.0})), "s.toml").lights[0].intensity
+        == 3.0
+    )
 
 
 # ----------------------------------------------------------------------------- booleans, numbers
@@ -129,7 +132,9 @@ def test_booleans_are_booleans(shape, key, value):
 
 
 def test_real_booleans_are_read_as_given():
-    spec = parse(_scene(lambda d: (d["shapes"][0].update(two_sided=False), d["shapes"][2].update(caps=False))), "s.toml")
+    spec = parse(
+        _scene(lambda d: (d["shapes"][0].update(two_sided=False), d["shapes"][2].update(caps=False))), "s.toml"
+    )
     assert spec.shapes[0].two_sided is False and spec.shapes[2].caps is False
     assert parse(copy.deepcopy(BASE), "s.toml").shapes[0].two_sided is True
 
@@ -147,7 +152,8 @@ def test_real_booleans_are_read_as_given():
                                                           "direction target − position = [0, -3, -5]", "[0, 0, 1]"]),
     (lambda d: d["shapes"][2].update(p1=[1, 0, 0]), ["shapes[2].p1: expected a point different from p0"]),
     (lambda d: d["shapes"][0].update(rotate=[1, 0, 0, float("inf")]), ["rotate: expected finite numbers"]),
-    (lambda d: d.update(sdf=[{"type": "mandelbulb", "iterations": 10 ** 9}]), ["iterations: expected an integer <= 64"]),
+    (lambda d: d.update(sdf=[{"type": "mandelbulb", "iterations": 10 ** 9}]),
+     ["iterations: expected an integer <= 64"]),
 ])
 def test_numbers_are_range_checked(edit, parts):
     _fails(_scene(edit), *parts)

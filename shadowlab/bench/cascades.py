@@ -181,21 +181,30 @@ def _ratio_row(label, t, base_t, fps, fps_base) -> str:
 
 def markdown(res: dict) -> str:
     m = res["machine"]
-    lines = [f"# Cascaded shadow maps ({res['date']})", "",
-             f"Machine: {machine_text(m)}. All figures from one run{' (--quick: small sizes, not for figures)' if res['quick'] else ''}.",
-             ""]
+    lines = [
+        f"# Cascaded shadow maps ({res['date']})",
+        "",
+        f"Machine: {machine_text(m)}. All figures from one "
+        f"run{' (--quick: small sizes, not for figures)' if res['quick'] else ''}.",
+        "",
+    ]
     c = res["cost"]
     rows, src = c["rows"], c["source_fps"]
     tb = rows["kernel"][1] if 1 in rows["kernel"] else rows["map_size"][c["base"]["resolution"]]
     W, H = c["resolution"]
-    lines += [f"## Cost beside the source's FPS table ({c['scene']}, {W}×{H}, 3 cascades)", "",
-              f"Base: {c['base']['resolution']}² per cascade, PCF kernel 1, interval selection, no blending. "
-              "Speed = base time / time, of the whole frame (shadow pass + lookup) and of the lookup alone; the "
-              "source's = FPS / base FPS ([Buljan 2020, §4.5], 1920×1080, 1024², a GPU that rasterises its maps). "
-              "Here the shadow pass casts one Mitsuba ray per texel and post-processes the map on the host, so it "
-              "dominates the frame; the lookup is the per-pixel work the kernel, blending and selection rows vary.", "",
-              "| configuration | shadow pass (ms) | lookup (ms) | frame (ms) | frame speed | lookup speed | source FPS | "
-              "source speed |", "|---|---|---|---|---|---|---|---|"]
+    lines += [
+        f"## Cost beside the source's FPS table ({c['scene']}, {W}×{H}, 3 cascades)",
+        "",
+        f"Base: {c['base']['resolution']}² per cascade, PCF kernel 1, interval selection, no blending. "
+        "Speed = base time / time, of the whole frame (shadow pass + lookup) and of the lookup alone; the "
+        "source's = FPS / base FPS ([Buljan 2020, §4.5], 1920×1080, 1024², a GPU that rasterises its maps). "
+        "Here the shadow pass casts one Mitsuba ray per texel and post-processes the map on the host, so it "
+        "dominates the frame; the lookup is the per-pixel work the kernel, blending and selection rows vary.",
+        "",
+        "| configuration | shadow pass (ms) | lookup (ms) | frame (ms) | frame speed | lookup speed | source FPS | "
+        "source speed |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for k, t in rows["map_size"].items():
         lines.append(_ratio_row(f"map {k}²", t, tb, src["map_size"].get(int(k)), 146))
     for k, t in rows["kernel"].items():
@@ -203,11 +212,17 @@ def markdown(res: dict) -> str:
     lines.append(_ratio_row("blending ±10 %", rows["blend"]["on"], tb, src["blend"]["on"], 146))
     lines.append(_ratio_row("map-based selection", rows["selection"]["map"], tb, src["selection"]["map"], 146))
     q = res["quality"]
-    lines += ["", f"## Quality at equal total texels ({q['scene']}, {q['resolution'][0]}×{q['resolution'][1]}, "
-                  f"{q['total_texels']:,} texels)", "",
-              "Visibility RMSE over the pixels the sun lights, in the truth's penumbra, and the leak / "
-              "over-darkening rates (defaults: practical λ 0.6, PCF 3×3, sphere fit, snapping, ±10 % blend).", "",
-              "| configuration | per cascade | RMSE | RMSE penumbra | leak rate | over-dark rate |", "|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        f"## Quality at equal total texels ({q['scene']}, {q['resolution'][0]}×{q['resolution'][1]}, "
+        f"{q['total_texels']:,} texels)",
+        "",
+        "Visibility RMSE over the pixels the sun lights, in the truth's penumbra, and the leak / "
+        "over-darkening rates (defaults: practical λ 0.6, PCF 3×3, sphere fit, snapping, ±10 % blend).",
+        "",
+        "| configuration | per cascade | RMSE | RMSE penumbra | leak rate | over-dark rate |",
+        "|---|---|---|---|---|---|",
+    ]
 
     def qrow(label, r):
         side = r["params"].get("resolution")
@@ -220,15 +235,25 @@ def markdown(res: dict) -> str:
     lines.append(qrow("one scene-fitted map (pcf)", q["one_map"]))
     if q.get("csm_equal"):
         bands_c = {(b["lo"], b["hi"]): b for b in q["csm_equal"]["bands"]}
-        lines += ["", "### By distance from the camera: 3 cascades vs one map of the same texels", "",
-                  "| distance (m) | pixels | csm RMSE | one map RMSE | csm leak | one map leak |", "|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "### By distance from the camera: 3 cascades vs one map of the same texels",
+            "",
+            "| distance (m) | pixels | csm RMSE | one map RMSE | csm leak | one map leak |",
+            "|---|---|---|---|---|---|",
+        ]
         for b in q["one_map"]["bands"]:
             cb = bands_c.get((b["lo"], b["hi"]))
             if cb:
                 lines.append(f"| {b['lo']:g}–{b['hi']:g} | {b['pixels']} | {cb['rmse']:.4f} | {b['rmse']:.4f} | "
                              f"{cb['leak_rate']:.4f} | {b['leak_rate']:.4f} |")
-    lines += ["", "## Error against texels per cascade (3 cascades)", "",
-              "| per cascade | total texels | RMSE | RMSE penumbra | leak rate | RMSE by cascade |", "|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## Error against texels per cascade (3 cascades)",
+        "",
+        "| per cascade | total texels | RMSE | RMSE penumbra | leak rate | RMSE by cascade |",
+        "|---|---|---|---|---|---|",
+    ]
     for s, r in q["sweep"].items():
         byc = ", ".join(f"{c['label']}: {c['rmse']:.4f}" for c in r.get("by_cascade", []) if c["label"] >= 0)
         lines.append(f"| {s}² | {r['texels']:,} | {r['vis_rmse']:.4f} | {r['vis_rmse_penumbra']:.4f} | "

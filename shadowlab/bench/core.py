@@ -65,12 +65,15 @@ from .virtual import run as virtual_bench
 def _kernels():
     h = [k for k in dr.kernel_history() if k.get("type") == dr.KernelType.JIT]  # not memsets/copies
     compiled = [k for k in h if not k.get("cache_hit") and not k.get("cache_disk")]
-    return {"kernels": len(h), "compiled": len(compiled),
-            "from_memory_cache": sum(1 for k in h if k.get("cache_hit")),
-            "from_disk_cache": sum(1 for k in h if k.get("cache_disk")),
-            "compile_ms": float(sum(k.get("codegen_time", 0) + k.get("backend_time", 0) for k in compiled)),
-            "load_ms": float(sum(k.get("codegen_time", 0) + k.get("backend_time", 0) for k in h if k.get("cache_disk"))),
-            "execution_ms": float(sum(k.get("execution_time", 0) for k in h))}
+    return {
+        "kernels": len(h),
+        "compiled": len(compiled),
+        "from_memory_cache": sum(1 for k in h if k.get("cache_hit")),
+        "from_disk_cache": sum(1 for k in h if k.get("cache_disk")),
+        "compile_ms": float(sum(k.get("codegen_time", 0) + k.get("backend_time", 0) for k in compiled)),
+        "load_ms": float(sum(k.get("codegen_time", 0) + k.get("backend_time", 0) for k in h if k.get("cache_disk"))),
+        "execution_ms": float(sum(k.get("execution_time", 0) for k in h)),
+    }
 
 
 @dr.syntax
@@ -297,17 +300,24 @@ def _raw_rows(tr: dict, gpu: bool) -> list:
     if "raw_ray_test" not in tr:
         return []
     r, im = tr["raw_ray_test"], tr["mitsuba_image"]
-    return [f"| raw Mitsuba `ray_test`, same points ({r['rays_per_point']} rays per point, one wavefront) | "
-            f"{r['rays_per_s'] / 1e6:.1f} M/s | |",
-            f"| truth / raw `ray_test` rays per second | **{100 * tr['truth_over_raw']:.0f} %** | "
-            f"≥ {50 if gpu else 80} % |",
-            *([] if "truth_kernels" not in tr else [
+    return [
+        f"| raw Mitsuba `ray_test`, same points ({r['rays_per_point']} rays per point, one wavefront) | "
+        f"{r['rays_per_s'] / 1e6:.1f} M/s | |",
+        f"| truth / raw `ray_test` rays per second | **{100 * tr['truth_over_raw']:.0f} %** | ≥ {50 if gpu else 80} % "
+        f"|",
+        *(
+            []
+            if "truth_kernels" not in tr
+            else [
                 f"| the truth's kernels (one more run, kernel history) | {tr['truth_kernels']['kernels']} launched, "
                 f"{tr['truth_kernels']['execution_ms']:.0f} ms of {1e3 * tr['truth_kernels']['wall_s']:.0f} ms wall "
-                f"({100 * tr['truth_kernels']['kernel_share']:.0f} %; the rest is the host's) | |"]),
-            f"| Mitsuba image of the truth ({im['spp']} spp in 4 passes, with variance) | {im['truth_image_s']:.3f} s | |",
-            f"| Mitsuba `direct` integrator alone ({im['spp']} spp, one render) | {im['direct_s']:.3f} s | |",
-            f"| truth image / `direct` time | **{im['ratio']:.2f}×** | ≤ 2× |"]
+                f"({100 * tr['truth_kernels']['kernel_share']:.0f} %; the rest is the host's) | |"
+            ]
+        ),
+        f"| Mitsuba image of the truth ({im['spp']} spp in 4 passes, with variance) | {im['truth_image_s']:.3f} s | |",
+        f"| Mitsuba `direct` integrator alone ({im['spp']} spp, one render) | {im['direct_s']:.3f} s | |",
+        f"| truth image / `direct` time | **{im['ratio']:.2f}×** | ≤ 2× |",
+    ]
 
 
 def _truth_markdown(res: dict) -> list:
@@ -315,32 +325,45 @@ def _truth_markdown(res: dict) -> list:
     m = res["machine"]
     tr = res["truth"]
     a, u = tr["adaptive"], tr["uniform"]
-    lines = [f"# shadowlab bench ({res['date']})", "",
-             f"Machine: {machine_text(m)}, libLLVM {m['libllvm']}. All figures from one run.", "",
-             f"## Ground truth ({tr['scene']}, {a['resolution'][0]}×{a['resolution'][1]}, target standard error {a['target_se']})", "",
-             "| measure | value | goal |", "|---|---|---|",
-             f"| wall time of the visibility truth (median of 3 warm runs) | {a['time_s']:.3f} s | "
-             f"{'≤ 0.1 s at 1920×1080' if str(m.get('variant', '')).startswith('cuda') else '≤ 5 s at 512²'} |",
-             f"| worst pixel standard error | {a['worst_se']:.4f} | ≤ {a['target_se']} |",
-             f"| pixels at target | {100 * a['pixels_at_target']:.2f} % | |",
-             f"| shadow rays (adaptive, stratified) | {a['shadow_rays']:,} ({a['rays_per_pixel']:.0f} per pixel) | |",
-             f"| shadow rays per second | {a['rays_per_s'] / 1e6:.1f} M/s | |",
-             f"| uniform i.i.d. sampling, rays per pixel for the same worst error | {u['samples_per_pixel_needed']:.0f} "
-             f"(measured: worst se {u['worst_se_measured']:.4f} at {u['samples_per_pixel_measured']} spp) | |",
-             f"| uniform / adaptive shadow rays | **{tr['ray_ratio_uniform_over_adaptive']:.1f}×** | ≥ 4× |"]
+    lines = [
+        f"# shadowlab bench ({res['date']})",
+        "",
+        f"Machine: {machine_text(m)}, libLLVM {m['libllvm']}. All figures from one run.",
+        "",
+        f"## Ground truth ({tr['scene']}, {a['resolution'][0]}×{a['resolution'][1]}, target standard error "
+        f"{a['target_se']})",
+        "",
+        "| measure | value | goal |",
+        "|---|---|---|",
+        f"| wall time of the visibility truth (median of 3 warm runs) | {a['time_s']:.3f} s | "
+        f"{'≤ 0.1 s at 1920×1080' if str(m.get('variant', '')).startswith('cuda') else '≤ 5 s at 512²'} |",
+        f"| worst pixel standard error | {a['worst_se']:.4f} | ≤ {a['target_se']} |",
+        f"| pixels at target | {100 * a['pixels_at_target']:.2f} % | |",
+        f"| shadow rays (adaptive, stratified) | {a['shadow_rays']:,} ({a['rays_per_pixel']:.0f} per pixel) | |",
+        f"| shadow rays per second | {a['rays_per_s'] / 1e6:.1f} M/s | |",
+        f"| uniform i.i.d. sampling, rays per pixel for the same worst error | {u['samples_per_pixel_needed']:.0f} "
+        f"(measured: worst se {u['worst_se_measured']:.4f} at {u['samples_per_pixel_measured']} spp) | |",
+        f"| uniform / adaptive shadow rays | **{tr['ray_ratio_uniform_over_adaptive']:.1f}×** | ≥ 4× |",
+    ]
     return lines + _raw_rows(tr, gpu=str(m.get("variant", "")).startswith("cuda")) + [""]
 
 
 def _markdown(res: dict) -> str:
     lines = _truth_markdown(res)
     te = res["techniques"]
-    lines += [f"## Techniques ({te['scene']}, {te['resolution'][0]}×{te['resolution'][1]})", "",
-              "| technique | compile (ms) | kernels compiled / from disk cache | first run (ms) | warm run (ms) | kernels compiled when warm |",
-              "|---|---|---|---|---|---|"]
+    lines += [
+        f"## Techniques ({te['scene']}, {te['resolution'][0]}×{te['resolution'][1]})",
+        "",
+        "| technique | compile (ms) | kernels compiled / from disk cache | first run (ms) | warm run (ms) | kernels "
+        "compiled when warm |",
+        "|---|---|---|---|---|---|",
+    ]
     for n, t in te["techniques"].items():
         kc = t["kernel_cache"]
-        lines.append(f"| {n} | {t['compile_ms']:.1f} | {t['kernels_compiled_first_run']} / {kc['from_disk_cache']} | "
-                     f"{1e3 * t['first_run_s']:.1f} | {1e3 * t['warm_run_s']:.2f} | {t['kernels_compiled_warm_runs']} |")
+        lines.append(
+            f"| {n} | {t['compile_ms']:.1f} | {t['kernels_compiled_first_run']} / {kc['from_disk_cache']} | "
+            f"{1e3 * t['first_run_s']:.1f} | {1e3 * t['warm_run_s']:.2f} | {t['kernels_compiled_warm_runs']} |"
+        )
     lines += ["", "Compile time: Dr.Jit codegen + LLVM time of JIT kernels served from neither the memory nor the "
               "disk cache (~/.drjit); kernels a previous process compiled are loaded from disk instead."]
     fl = res.get("filters")
@@ -361,16 +384,24 @@ def _markdown(res: dict) -> str:
             lines.append(f"| {n} | " + " | ".join(f"{x:.2f}" for x in w) + f" | {w[-1] / w[0]:.2f}× |")
     sw = res.get("sweep")
     if sw:
-        lines += ["", "## Parameter sweeps (kernel cache)", "",
-                  "| technique | parameter | values | range | kernels launched | compiled after the first value | cache hits |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "## Parameter sweeps (kernel cache)",
+            "",
+            "| technique | parameter | values | range | kernels launched | compiled after the first value | cache hits "
+            "|",
+            "|---|---|---|---|---|---|---|",
+        ]
         for n, d in sw.items():
             lines.append(f"| {n} | `{d['param']}` | {d['values']} | [{d['range'][0]:.4g}, {d['range'][1]:.4g}] | "
                          f"{d['kernels_launched']} | {d['kernels_compiled_after_first']} | {d['cache_hits']} |")
     if res.get("fit"):
         lines += fit_markdown(res["fit"])
     if res.get("sdf"):
-        lines += ["", f"SDF soft shadows ([Bán 2019, ch. 6]): see `{Path(res['sdf']).name}` (`shadowlab bench --only sdf`)."]
+        lines += [
+            "",
+            f"SDF soft shadows ([Bán 2019, ch. 6]): see `{Path(res['sdf']).name}` (`shadowlab bench --only sdf`).",
+        ]
     if res.get("cascades"):
         lines += ["", f"Cascaded shadow maps ([Buljan 2020, ch. 4]): see `{Path(res['cascades']).name}` "
                       "(`shadowlab bench --only cascades`)."]

@@ -264,11 +264,19 @@ def bench_soft(cfg: Config) -> dict:
             if isinstance(s, dict) and light in s:
                 rows[n][k] = float(s[light])
     diff = (vis["sm_dpsv_soft"] - vis["pcss"])[valid]
-    return {"scene": SOFT_SCENE, "light": light, "kind": sc.spec.lights[0].kind, "resolution": list(res),
-            "truth": "committed CI reference" if cfg.committed else "rendered for the run",
-            "map_cast_first_s": casts[0], "tree": tree.stats(), "techniques": rows, "soft_over_pcss": rows["sm_dpsv_soft"]["warm_s"] / rows["pcss"]["warm_s"],
-            "rmse_soft_vs_pcss": float(np.sqrt(np.mean(diff ** 2))) if diff.size else 0.0,
-            "paper_soft_over_pcss": PAPER["soft_over_pcss"]}
+    return {
+        "scene": SOFT_SCENE,
+        "light": light,
+        "kind": sc.spec.lights[0].kind,
+        "resolution": list(res),
+        "truth": "committed CI reference" if cfg.committed else "rendered for the run",
+        "map_cast_first_s": casts[0],
+        "tree": tree.stats(),
+        "techniques": rows,
+        "soft_over_pcss": rows["sm_dpsv_soft"]["warm_s"] / rows["pcss"]["warm_s"],
+        "rmse_soft_vs_pcss": float(np.sqrt(np.mean(diff**2))) if diff.size else 0.0,
+        "paper_soft_over_pcss": PAPER["soft_over_pcss"],
+    }
 
 
 # ----------------------------------------------------------------------------------------------
@@ -308,19 +316,24 @@ def _ms(s) -> str:
 
 def _hard_md(h: dict) -> list:
     p = h["paper"]
-    lines = ["## Hard shadows: fused (sm_dpsv) against the shadow map (hard) and DPSV alone (dpsv)", "",
-             f"Scenes built for the run: a displaced-grid floor of {h['floor_triangles']:,} triangles "
-             f"({h['grid']}×{h['grid']} quads, a PLY mesh) under a large slab and a block (*large shadow*) or four "
-             "small cubes (*little shadow*), one light each. Time: the technique's render, median of "
-             f"{h['repeats']} warm renders, not counting the first (it compiles; in the second table) and one "
-             f"warm-up (a first render over {SLOW_S:.0f} s: {SLOW_REPEATS} renders, no warm-up); the shadow map "
-             "and the TOP tree are cached on the frame before (cast and build below, not in the time). Edge: share of the valid points `sm_dpsv` "
-             "classifies as shadow-edge points; nodes/query: mean nodes visited per tree query. Mismatches: valid "
-             "pixels the light reaches where (V > ½) ≠ (V_centre > ½), V_centre the exact visibility of the "
-             "light's centre.", "",
-             "| scene | light | px | triangles | shadowed | hard (ms) | sm_dpsv (ms) | dpsv (ms) | fused/SM | "
-             "fused/DPSV | edge | nodes/query sm_dpsv / dpsv | mismatches hard / sm_dpsv / dpsv |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "## Hard shadows: fused (sm_dpsv) against the shadow map (hard) and DPSV alone (dpsv)",
+        "",
+        f"Scenes built for the run: a displaced-grid floor of {h['floor_triangles']:,} triangles "
+        f"({h['grid']}×{h['grid']} quads, a PLY mesh) under a large slab and a block (*large shadow*) or four "
+        "small cubes (*little shadow*), one light each. Time: the technique's render, median of "
+        f"{h['repeats']} warm renders, not counting the first (it compiles; in the second table) and one "
+        f"warm-up (a first render over {SLOW_S:.0f} s: {SLOW_REPEATS} renders, no warm-up); the shadow map "
+        "and the TOP tree are cached on the frame before (cast and build below, not in the time). Edge: share of the "
+        "valid points `sm_dpsv` "
+        "classifies as shadow-edge points; nodes/query: mean nodes visited per tree query. Mismatches: valid "
+        "pixels the light reaches where (V > ½) ≠ (V_centre > ½), V_centre the exact visibility of the "
+        "light's centre.",
+        "",
+        "| scene | light | px | triangles | shadowed | hard (ms) | sm_dpsv (ms) | dpsv (ms) | fused/SM | "
+        "fused/DPSV | edge | nodes/query sm_dpsv / dpsv | mismatches hard / sm_dpsv / dpsv |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for c in h["cases"]:
         t = c["techniques"]
         lines.append(
@@ -362,13 +375,19 @@ def _hard_md(h: dict) -> list:
 
 def _soft_md(s: dict) -> list:
     t = s["techniques"]
-    lines = ["", f"## Soft shadows: sm_dpsv_soft against pcss ({s['scene']}, {s['kind']} light)", "",
-             f"{s['resolution'][0]}×{s['resolution'][1]}, default parameters; time as above. Before it, once: the "
-             f"map's cast ({s['map_cast_first_s']:.2f} s, first incl. compile) and the TOP tree's build "
-             f"({s['tree']['build_seconds']:.4f} s, {s['tree']['triangles']} triangles, {s['tree']['nodes']} nodes). RMSE of the visibility against the truth ({s['truth']}) over the valid pixels the light "
-             "reaches, and in its penumbra; between the two: RMSE of one's visibility against the other's.", "",
-             "| technique | warm (ms) | first run (ms) | RMSE vs truth | RMSE in penumbra | edge | nodes/query |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "",
+        f"## Soft shadows: sm_dpsv_soft against pcss ({s['scene']}, {s['kind']} light)",
+        "",
+        f"{s['resolution'][0]}×{s['resolution'][1]}, default parameters; time as above. Before it, once: the "
+        f"map's cast ({s['map_cast_first_s']:.2f} s, first incl. compile) and the TOP tree's build "
+        f"({s['tree']['build_seconds']:.4f} s, {s['tree']['triangles']} triangles, {s['tree']['nodes']} nodes). RMSE "
+        f"of the visibility against the truth ({s['truth']}) over the valid pixels the light "
+        "reaches, and in its penumbra; between the two: RMSE of one's visibility against the other's.",
+        "",
+        "| technique | warm (ms) | first run (ms) | RMSE vs truth | RMSE in penumbra | edge | nodes/query |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for n, r in t.items():
         e = f"{100 * r['edge_fraction']:.2f} %" if "edge_fraction" in r else "–"
         q = f"{r['nodes_per_query']:.1f}" if "nodes_per_query" in r else "–"
@@ -389,8 +408,11 @@ def _build_md(b: dict) -> list:
              "| mesh | order | triangles | build (s) | nodes | depth | rounds | dropped | degenerate |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in b["rows"]:
-        lines.append(f"| {r['mesh']} | {r.get('order', 'light')} | {r['input_triangles']:,} | {r['build_seconds']:.3f} | {r['nodes']:,} | "
-                     f"{r['depth']} | {r['build_rounds']} | {r['dropped']} | {r['degenerate']} |")
+        lines.append(
+            f"| {r['mesh']} | {r.get('order', 'light')} | {r['input_triangles']:,} | {r['build_seconds']:.3f} | "
+            f"{r['nodes']:,} | "
+            f"{r['depth']} | {r['build_rounds']} | {r['dropped']} | {r['degenerate']} |"
+        )
     g = b["goal_met"]
     lines += ["", f"Goal: {b['goal_triangles']:,} triangles in ≤ {b['goal_s']:.0f} s on 2 cores: "
                   + ("not measured (no mesh that large in this run)" if g is None else ("met" if g else "**not met**"))

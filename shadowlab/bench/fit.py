@@ -56,8 +56,13 @@ def scene_goals(name: str, starts=STARTS, grid_exp: int = GRID_EXP) -> dict:
                      "iterations_with_new_kernels": r["kernels"]["iterations_with_new_kernels"],
                      "wall_time_s": r["wall_time_s"], "window": [d.lo, d.hi]})
     g, _ = _fit(frame, truth, sc, "golden", s)
-    golden = {"fitted": g["params"]["light_scale"]["fitted"], "loss": g["loss_after"], "objective": g["objective_after"],
-              "evaluations": g["evaluations"], "wall_time_s": g["wall_time_s"]}
+    golden = {
+        "fitted": g["params"]["light_scale"]["fitted"],
+        "loss": g["loss_after"],
+        "objective": g["objective_after"],
+        "evaluations": g["evaluations"],
+        "wall_time_s": g["wall_time_s"],
+    }
     # the grid: one objective, forward renders only
     obj = Objective(frame, truth, R.plan("pcss", frame, params=["light_scale"]).tech, "rmse_penumbra")
     n = 2 ** grid_exp + 1
@@ -76,13 +81,23 @@ def scene_goals(name: str, starts=STARTS, grid_exp: int = GRID_EXP) -> dict:
         equal = [m for m, v in sorted(nested.items()) if v <= f["objective"]]
         f["grid_points_for_equal_loss"] = equal[0] if equal else None
         f["evaluation_ratio_grid_over_fit"] = (equal[0] / f["evaluations"]) if equal else None
-    return {"scene": name, "resolution": list(sc.resolution), "scene_light_size": s, "window": [lo, hi],
-            "grid_optimum": x_opt, "grid_optimum_loss": obj.report(f_opt), "grid_points": n + 41,
-            "grid_time_per_evaluation_s": t_grid, "nested_grid_best_loss": {str(m): obj.report(v) for m, v in nested.items()},
-            "adam": fits, "golden": golden,
-            "goal_within_2pct": all(f["relative_error_vs_grid_optimum"] <= 0.02 for f in fits),
-            "goal_5x_fewer": all((f["evaluation_ratio_grid_over_fit"] or 0) >= 5
-                                 or f["grid_points_for_equal_loss"] is None for f in fits)}
+    return {
+        "scene": name,
+        "resolution": list(sc.resolution),
+        "scene_light_size": s,
+        "window": [lo, hi],
+        "grid_optimum": x_opt,
+        "grid_optimum_loss": obj.report(f_opt),
+        "grid_points": n + 41,
+        "grid_time_per_evaluation_s": t_grid,
+        "nested_grid_best_loss": {str(m): obj.report(v) for m, v in nested.items()},
+        "adam": fits,
+        "golden": golden,
+        "goal_within_2pct": all(f["relative_error_vs_grid_optimum"] <= 0.02 for f in fits),
+        "goal_5x_fewer": all(
+            (f["evaluation_ratio_grid_over_fit"] or 0) >= 5 or f["grid_points_for_equal_loss"] is None for f in fits
+        ),
+    }
 
 
 def measure(quick: bool = False) -> dict:
@@ -115,9 +130,12 @@ def markdown(res: dict) -> list[str]:
         for f in sg["adam"]:
             lines.append(
                 f"| {sg['scene']} | {f['start']:.3f} | {f['fitted']:.4f} | {sg['grid_optimum']:.4f} | "
-                f"{100 * f['relative_error_vs_grid_optimum']:.2f} % | {f['loss']:.4g} / {sg['grid_optimum_loss']:.4g} | "
-                f"{f['evaluations']} ({f['backward']}) | {_grid_cells(sg, f)} | {f['kernels_compiled']} / {f['kernels_from_disk']} | "
-                f"{f['wall_time_s']:.2f} |")
+                f"{100 * f['relative_error_vs_grid_optimum']:.2f} % | {f['loss']:.4g} / {sg['grid_optimum_loss']:.4g} "
+                f"| "
+                f"{f['evaluations']} ({f['backward']}) | {_grid_cells(sg, f)} | {f['kernels_compiled']} / "
+                f"{f['kernels_from_disk']} | "
+                f"{f['wall_time_s']:.2f} |"
+            )
         g = sg["golden"]
         lines.append(f"| {sg['scene']} (golden) | {sg['scene_light_size']:.3f} | {g['fitted']:.4f} | "
                      f"{sg['grid_optimum']:.4f} | {100 * g['relative_error_vs_grid_optimum']:.2f} % | "

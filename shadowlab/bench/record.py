@@ -24,8 +24,10 @@ from pathlib import Path
 #: version of the record format (bump when a key changes meaning)
 SCHEMA = 1
 
-_MACHINE = re.compile(r"^Machine: (?P<cpu>.+?), (?P<cores>\d+) cores(?:, (?P<gpu>[^,]*(?:NVIDIA|AMD Instinct|GPU)[^,]*))?"
-                      r", mitsuba (?P<mitsuba>[^,]+), drjit (?P<drjit>[^,]+), variant (?P<variant>[^,.\s]+)")
+_MACHINE = re.compile(
+    r"^Machine: (?P<cpu>.+?), (?P<cores>\d+) cores(?:, (?P<gpu>[^,]*(?:NVIDIA|AMD Instinct|GPU)[^,]*))?"
+    r", mitsuba (?P<mitsuba>[^,]+), drjit (?P<drjit>[^,]+), variant (?P<variant>[^,.\s]+)"
+)
 
 
 def _cells(line: str) -> list[str]:

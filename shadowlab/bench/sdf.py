@@ -168,14 +168,23 @@ def bench_radius_curve(scene="sdf_composite", res=128, radii=RADII, epsilons=CUR
 
 def _markdown(res: dict) -> str:
     m = res["machine"]
-    L = [f"# shadowlab bench: SDF soft shadows ({res['date']})", "",
-         f"Machine: {machine_text(m)}. All figures from one run; i_max = {I_MAX} (no march stops early unless noted).", ""]
+    L = [
+        f"# shadowlab bench: SDF soft shadows ({res['date']})",
+        "",
+        f"Machine: {machine_text(m)}. All figures from one run; i_max = {I_MAX} (no march stops early unless noted).",
+        "",
+    ]
     for name, d in res["variants"].items():
         W = d["resolution"][0]
-        L += [f"## {name}: shadow pass, {W}×{W} ([Bán 2019, Tables 6.1–6.3])", "",
-              "Each cell: warm time of the shadow pass in ms (SDF evaluations per point) · penumbra RMSE against the "
-              f"{d['error_resolution'][0]}² truth ({d['penumbra_pixels']} penumbra pixels). Fastest per row in bold.", "",
-              "| ε | D | base | linear | discrete | convex | base / linear |", "|---|---|---|---|---|---|---|"]
+        L += [
+            f"## {name}: shadow pass, {W}×{W} ([Bán 2019, Tables 6.1–6.3])",
+            "",
+            "Each cell: warm time of the shadow pass in ms (SDF evaluations per point) · penumbra RMSE against the "
+            f"{d['error_resolution'][0]}² truth ({d['penumbra_pixels']} penumbra pixels). Fastest per row in bold.",
+            "",
+            "| ε | D | base | linear | discrete | convex | base / linear |",
+            "|---|---|---|---|---|---|---|",
+        ]
         tab = d["table"]
         for eps in sorted({r["eps"] for r in tab.values()}, reverse=True):
             for D in DIRECTIONS:
@@ -183,7 +192,11 @@ def _markdown(res: dict) -> str:
                 best = min(c["time_ms"] for c in cells)
                 txt = [(f"**{c['time_ms']:.1f}**" if c["time_ms"] == best else f"{c['time_ms']:.1f}")
                        + f" ({c['evals_per_point_timed']:.0f}) · {c['rmse_penumbra']:.4f}" for c in cells]
-                L.append(f"| {_frac(eps)} | {D} | " + " | ".join(txt) + f" | {cells[0]['time_ms'] / cells[1]['time_ms']:.2f}× |")
+                L.append(
+                    f"| {_frac(eps)} | {D} | "
+                    + " | ".join(txt)
+                    + f" | {cells[0]['time_ms'] / cells[1]['time_ms']:.2f}× |"
+                )
         b = d["baselines"]
         L += ["", "Baselines: " + ", ".join(f"{k} {v['time_ms']:.1f} ms ({v['evals_per_point']:.0f} evaluations, "
                                              f"penumbra RMSE {v['rmse_penumbra']:.4f})" for k, v in b.items()), ""]
@@ -196,13 +209,19 @@ def _markdown(res: dict) -> str:
           "largest ε: no error gain | thesis |", "|---|---|" + "---|" * (len(eps_list) + 3)]
     thesis = {0.25: "1/16", 0.5: "1/16", 1.0: "1/32", 2.0: "1/32", 4.0: "1/64"}
     for c in rc["curve"].values():
-        cells = [f"{c['by_eps'][_frac(e)]['rmse_penumbra']:.4f} · {c['by_eps'][_frac(e)]['time_ms']:.1f}" for e in eps_list]
+        cells = [
+            f"{c['by_eps'][_frac(e)]['rmse_penumbra']:.4f} · {c['by_eps'][_frac(e)]['time_ms']:.1f}" for e in eps_list
+        ]
         L.append(f"| {c['radius']:g} | {c['penumbra_pixels']} | " + " | ".join(cells) +
                  f" | {_frac(c['largest_eps_no_visible_change'])} | {_frac(c['largest_eps_no_error_gain'])} | "
                  f"{thesis.get(c['radius'], '')} |")
-    L += ["", f"No visible change: the image is within 2/255 of the ε = {_frac(min(eps_list))} image at 99 % of the "
-          f"pixels where either that image or the truth is soft (0.02 < V < 0.98); the largest difference anywhere is "
-          f"about ε/2 (the march's guarantee). No error gain: penumbra RMSE within 0.5/255 of the ε = {_frac(min(eps_list))} RMSE."]
+    L += [
+        "",
+        f"No visible change: the image is within 2/255 of the ε = {_frac(min(eps_list))} image at 99 % of the "
+        f"pixels where either that image or the truth is soft (0.02 < V < 0.98); the largest difference anywhere is "
+        f"about ε/2 (the march's guarantee). No error gain: penumbra RMSE within 0.5/255 of the ε = "
+        f"{_frac(min(eps_list))} RMSE.",
+    ]
     return "\n".join(L) + "\n"
 
 

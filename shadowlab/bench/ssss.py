@@ -93,7 +93,9 @@ class Config:
 
 
 CONFIGS = {
-    "quick": Config(res=48, repeats=2, lights=(1, 4, 16), generated=(32,), gen_res=48, shadow_map=128, gen_shadow_map=64),
+    "quick": Config(
+        res=48, repeats=2, lights=(1, 4, 16), generated=(32,), gen_res=48, shadow_map=128, gen_shadow_map=64
+    ),
     # on 2 CPU cores (shared) the whole run took 4.5 minutes at these sizes
     "full": Config(res=320, repeats=5, lights=(1, 4, 8, 12, 16), generated=(32, 64, 128), gen_res=192),
     "gpu": Config(res=1080, repeats=5, lights=(1, 4, 8, 12, 16), generated=(32, 64, 128), gen_res=1080),
@@ -219,16 +221,22 @@ def _kernel_md(k: dict) -> list:
     rows = k["rows"]
     h = rows["hard"]["warm_s"]
     ph = PAPER_KERNEL[("hard", None)]
-    lines = ["## Cost against kernel (Table 1)", "",
-             f"`{k['scene']}`, {k['resolution'][0]}×{k['resolution'][1]}, {k['lights']} lights, maps "
-             f"{'as the scene (sun 1024², others 512²)' if k.get('shadow_map') is None else str(k['shadow_map']) + '²'} "
-             f"({rows['ssss_optimised/11'].get('layers_used', '?')} layers); warm render of every light's shadows (median of "
-             f"{len(rows['hard'].get('runs_s', []))} passes, each timing every case of the run once, round-robin), "
-             f"the maps cast before ({_ms(k['map_cast_s'])} ms for all of them, first cast incl. compile). "
-             "Ratio: time / hard's. Source: whole frames (maps included), GPU, 720p | 1080p, and its ratio to its "
-             "hard-shadow frame at 1080p. pcss's PCF step is 16 / 32 / 64 Poisson taps for k = 5 / 11 / 23.", "",
-             "| technique | kernel | ours (ms) | ours / hard | source 720p (ms) | source 1080p (ms) | source / hard (1080p) |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "## Cost against kernel (Table 1)",
+        "",
+        f"`{k['scene']}`, {k['resolution'][0]}×{k['resolution'][1]}, {k['lights']} lights, maps "
+        f"{'as the scene (sun 1024², others 512²)' if k.get('shadow_map') is None else str(k['shadow_map']) + '²'} "
+        f"({rows['ssss_optimised/11'].get('layers_used', '?')} layers); warm render of every light's shadows (median "
+        f"of "
+        f"{len(rows['hard'].get('runs_s', []))} passes, each timing every case of the run once, round-robin), "
+        f"the maps cast before ({_ms(k['map_cast_s'])} ms for all of them, first cast incl. compile). "
+        "Ratio: time / hard's. Source: whole frames (maps included), GPU, 720p | 1080p, and its ratio to its "
+        "hard-shadow frame at 1080p. pcss's PCF step is 16 / 32 / 64 Poisson taps for k = 5 / 11 / 23.",
+        "",
+        "| technique | kernel | ours (ms) | ours / hard | source 720p (ms) | source 1080p (ms) | source / hard (1080p) "
+        "|",
+        "|---|---|---|---|---|---|---|",
+    ]
     lines.append(f"| hard | – | {_ms(h)} | 1.00 | {ph[0]} | {ph[1]} | 1.00 |")
     for row in VARIANTS:
         for kk in KERNELS:
@@ -238,9 +246,15 @@ def _kernel_md(k: dict) -> list:
             lines.append(f"| {row} | {lab} | {_ms(r['warm_s'])} | {r['warm_s'] / h:.2f} | {p[0]} | {p[1]} | "
                          f"{p[1] / ph[1]:.2f} |")
     flat = {row: rows[f"{row}/23"]["warm_s"] / rows[f"{row}/5"]["warm_s"] for row in VARIANTS}
-    lines += ["", "Growth from kernel 5 to 23 (time at 23 / time at 5): "
-              + ", ".join(f"{row} {flat[row]:.2f}× (source {PAPER_KERNEL[(row, 23)][1] / PAPER_KERNEL[(row, 5)][1]:.2f}×)"
-                          for row in VARIANTS) + "."]
+    lines += [
+        "",
+        "Growth from kernel 5 to 23 (time at 23 / time at 5): "
+        + ", ".join(
+            f"{row} {flat[row]:.2f}× (source {PAPER_KERNEL[(row, 23)][1] / PAPER_KERNEL[(row, 5)][1]:.2f}×)"
+            for row in VARIANTS
+        )
+        + ".",
+    ]
     return lines
 
 
@@ -279,11 +293,14 @@ def _lights_md(l: dict, g: dict) -> list:
         lines += ["", f"Cost per added light ({ns[0]} → {ns[-1]}), in units of one-light pcss: pcss {sl['pcss']:.3f}, "
                       f"ssss optimised {sl['ssss_optimised']:.3f}, ssss blocker search {sl['ssss_blocker_search']:.3f} "
                       f"(source: pcss {psl[0]:.3f}, ssss optimised {psl[1]:.3f})."]
-    lines += ["", "ssss's min filter is three Dr.Jit passes over each light's low-resolution map (a block minimum, then "
-                  "minima along rows and columns over the search radius) at every render: its cost grows with the "
-                  "maps and the radius, not the screen. `many_lights` has two coloured translucent panes, so every "
-                  "ssss row also packs and blurs a translucency map per layer (three more blurred channels); the "
-                  "generated scenes have panes too."]
+    lines += [
+        "",
+        "ssss's min filter is three Dr.Jit passes over each light's low-resolution map (a block minimum, then "
+        "minima along rows and columns over the search radius) at every render: its cost grows with the "
+        "maps and the radius, not the screen. `many_lights` has two coloured translucent panes, so every "
+        "ssss row also packs and blurs a translucency map per layer (three more blurred channels); the "
+        "generated scenes have panes too.",
+    ]
     return lines
 
 

@@ -27,7 +27,8 @@ Every figure from one run, on the sun of two built-in scenes:
   (``hard`` [Buljan 2020, §2.3]) at the same shadow-map memory, 4 bytes a texel: the budget is
   fvsm's largest along the path (its memory depends on the view), csm and the single maps take
   the largest resolution whose texels fit in it, vtsm the power-of-two ``t_max`` whose t_max² is
-  nearest to it (its tiles are drawn one after another into one t_max² texture). The two errors above per frame, and the shimmer
+  nearest to it (its tiles are drawn one after another into one t_max² texture). The two errors above per frame, and the
+  shimmer
   (:func:`shadowlab.pipeline.shimmer`) along the path as in :mod:`shadowlab.bench.cascades`.
 
 The area-light truth of the path's frames is rendered for the run into a temporary store
@@ -291,15 +292,21 @@ def _ran(m: dict, scene: str, res, extra: str) -> str:
 
 
 def _cost_md(c: dict, m: dict) -> list:
-    lines = [f"## Cost and tiles against ξ (fvsm, {c['scene']})", "",
-             _ran(m, c["scene"], c["resolution"], f"t_max {c['t_max']}, grid {c['grid']}, sun"), "",
-             f"Frame = the technique's whole render (demand, tiles ray cast one ray a texel, deferred pass), median of "
-             f"{c['repeats']} warm renders (vtsm: {c['vtsm_repeats']}) after one untimed. Memory of the tile textures per "
-             "mode (MiB, 4 bytes a texel, [Giegl 2007, §4.10]); depth: the deepest pyramid level a tile sits on; "
-             "demand: the root's [L_x, L_y] (a virtual map of 2^L texels per axis); unshadowed: pixels no tile wrote; "
-             "error: hard-shadow error rate against the light centre's exact visibility.", "",
-             "| ξ | frame (ms) | tiles | texels (rays) | subrect | pow2 | exact | depth | demand | unshadowed | "
-             "error rate |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"## Cost and tiles against ξ (fvsm, {c['scene']})",
+        "",
+        _ran(m, c["scene"], c["resolution"], f"t_max {c['t_max']}, grid {c['grid']}, sun"),
+        "",
+        f"Frame = the technique's whole render (demand, tiles ray cast one ray a texel, deferred pass), median of "
+        f"{c['repeats']} warm renders (vtsm: {c['vtsm_repeats']}) after one untimed. Memory of the tile textures per "
+        "mode (MiB, 4 bytes a texel, [Giegl 2007, §4.10]); depth: the deepest pyramid level a tile sits on; "
+        "demand: the root's [L_x, L_y] (a virtual map of 2^L texels per axis); unshadowed: pixels no tile wrote; "
+        "error: hard-shadow error rate against the light centre's exact visibility.",
+        "",
+        "| ξ | frame (ms) | tiles | texels (rays) | subrect | pow2 | exact | depth | demand | unshadowed | error rate "
+        "|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for xi, r in c["fvsm"].items():
         mm = r["memory_modes"]
         lines.append(f"| {xi} | {1e3 * r['frame_s']:.1f} | {r['tiles']} | {r['texels']:,} | {_mib(mm['subrect'])} | "

@@ -193,7 +193,9 @@ def visible_gpus() -> list[str]:
         out = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=10)
     except (OSError, subprocess.SubprocessError):
         return []
-    return [str(i) for i, l in enumerate(out.stdout.splitlines()) if l.startswith("GPU ")] if out.returncode == 0 else []
+    return (
+        [str(i) for i, l in enumerate(out.stdout.splitlines()) if l.startswith("GPU ")] if out.returncode == 0 else []
+    )
 
 
 def _local(workers: int) -> DaskExecutor:

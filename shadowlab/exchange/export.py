@@ -32,7 +32,7 @@ Conventions (also written into the JSON files, key ``convention``):
 * Lights: ``pose`` is the rigid local→world frame (columns: x, y, z axes and origin); area lights
   (rect, disk, spot with a radius) emit from the +z side of their pose; ``to_world`` is Mitsuba's
   transform of the canonical primitive (rectangle [−1, 1]², disk and sphere of radius 1).
-"""
+"""  # noqa: E501
 
 from __future__ import annotations
 
@@ -119,14 +119,15 @@ LIGHT_CONVENTION = {
 SCENE_CONVENTION = {
     "units": "metres; world right-handed (the built-in scenes have +y up)",
     "ply": "binary little-endian PLY, world space: float x y z, unit shading normal nx ny nz (smooth on curved "
-           "surfaces, flat on cubes and loaded meshes), float u v = Mitsuba's uv of the primitive "
-           "(rectangle ((x+1)/2, (y+1)/2), disk (r, phi/2pi), sphere (phi/2pi, theta/pi), cylinder (phi/2pi, z)); "
-           "faces are triangles wound counter-clockwise seen from the side the normal points to "
-           "(cross(v1 - v0, v2 - v0) is the front geometric normal)",
+    "surfaces, flat on cubes and loaded meshes), float u v = Mitsuba's uv of the primitive "
+    "(rectangle ((x+1)/2, (y+1)/2), disk (r, phi/2pi), sphere (phi/2pi, theta/pi), cylinder (phi/2pi, z)); "
+    "faces are triangles wound counter-clockwise seen from the side the normal points to "
+    "(cross(v1 - v0, v2 - v0) is the front geometric normal)",
     "albedo": "linear RGB reflectance of a Lambertian (diffuse) BSDF: outgoing radiance = albedo / pi x irradiance",
     "two_sided": "true: both sides reflect with the same albedo; false: the back side (against the normal) is black",
-    "alpha": "opacity PNG looked up at the PLY's uv, nearest texel, PNG row 0 (top) at v = 0, clamped; 0 = the surface is "
-             "not there (neither seen nor casting a shadow), 255 = opaque",
+    "alpha": "opacity PNG looked up at the PLY's uv, nearest texel, PNG row 0 (top) at v = 0, clamped; 0 = the surface "
+             "is "
+    "not there (neither seen nor casting a shadow), 255 = opaque",
 }
 
 
@@ -245,9 +246,17 @@ def light_info(light, mitsuba_dict: dict, ply: str | None) -> dict:
             info["size"]["cone_half_angle_deg"] = float(light.angle)
         if r > 0:
             info["area_m2"] = 4 * math.pi * r * r if k in ("sphere", "point") else math.pi * r * r
-        info["emits"] = {"disk": "+z side of pose", "sphere": "outward", "point": "outward" if r > 0 else "all directions",
-                         "spot": ("+z side of pose, in every direction (Mitsuba has no area spot; the cone only "
-                                  "sets the shadow map's field of view)") if r > 0 else "inside the cone around +z"}[k]
+        info["emits"] = {
+            "disk": "+z side of pose",
+            "sphere": "outward",
+            "point": "outward" if r > 0 else "all directions",
+            "spot": (
+                "+z side of pose, in every direction (Mitsuba has no area spot; the cone only "
+                "sets the shadow map's field of view)"
+            )
+            if r > 0
+            else "inside the cone around +z",
+        }[k]
     else:  # directional
         a = float(light.angular_diameter)
         info["size"] = {"angular_diameter_deg": a, "angular_diameter_rad": math.radians(a)}
@@ -440,8 +449,15 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
             if "emitter" in ld:  # area light: its emitting geometry
                 rel = f"meshes/light_{l.name}.ply"
                 P, N, UV, F = triangulate(ld, segments)
-                write_ply(tmp / rel, P, N, UV, F,
-                          comment=f"shadowlab export of scene {spec.name}, light {l.name} ({l.kind}), emits along the normals")
+                write_ply(
+                    tmp / rel,
+                    P,
+                    N,
+                    UV,
+                    F,
+                    comment=f"shadowlab export of scene {spec.name}, light {l.name} ({l.kind}), emits along the "
+                            f"normals",
+                )
                 mesh_files[f"light_{l.name}"] = rel
             info = light_info(l, ld, rel)
             info["shadow_camera"] = shadow_camera(l, sc, hard)

@@ -237,9 +237,11 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
             pen |= penumbra_mask(truth.lights[n].V, lit[n])
         if against == "mitsuba":
             if truth.mitsuba is None:
-                raise InputError("the reference has no mitsuba.R|G|B channels (rendered with --spp 0); use "
-                                 f"--against shaded or re-render it: `shadowlab reference {store.scene_arg(spec)} --resolution "
-                                 f"{W}x{H} --force`")
+                raise InputError(
+                    "the reference has no mitsuba.R|G|B channels (rendered with --spp 0); use "
+                    f"--against shaded or re-render it: `shadowlab reference {store.scene_arg(spec)} --resolution "
+                    f"{W}x{H} --force`"
+                )
             t_img, t_var = np.asarray(truth.mitsuba, np.float64), np.asarray(truth.mitsuba_var, np.float64)
         else:
             t_img, t_var = np.asarray(truth.shaded, np.float64), np.asarray(truth.shaded_var, np.float64)
@@ -280,23 +282,43 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
     # metrics.json keeps numbers in "metrics" / "per_light" (the channel name goes to params)
     per_light_num = {n: {k: v for k, v in d.items() if k != "channel"} for n, d in per_light.items()}
     run = {
-        "scene": spec.name, "resolution": [W, H],
-        "reference": {"spp": float(np.mean(list(meta["samples"]["mean_rays_per_pixel"].values()))),
-                      "rays_per_pixel": meta["samples"]["mean_rays_per_pixel"],
-                      "max_std_error": meta["max_std_error"], "seed": meta.get("seed"),
-                      "supersampling": int(meta.get("supersampling", 1)),
-                      "path": str(store.path_for(spec.name, res, base, frame=spec.frame)), "scene_hash": meta.get("scene_hash")},
+        "scene": spec.name,
+        "resolution": [W, H],
+        "reference": {
+            "spp": float(np.mean(list(meta["samples"]["mean_rays_per_pixel"].values()))),
+            "rays_per_pixel": meta["samples"]["mean_rays_per_pixel"],
+            "max_std_error": meta["max_std_error"],
+            "seed": meta.get("seed"),
+            "supersampling": int(meta.get("supersampling", 1)),
+            "path": str(store.path_for(spec.name, res, base, frame=spec.frame)),
+            "scene_hash": meta.get("scene_hash"),
+        },
         "lights": run_lights,
-        "light_info": light_info(spec.lights),   # the report's light summary (kind, size, what the truth is)
-        "ingest": {"image": str(image), "mode": "shaded" if shaded else "visibility", "against": against,
-                   "channels": ({n: picked[n][0] for n in run_lights} if not shaded else {"rgb": rgb_names}),
-                   "notes": notes, "labels": titles},
-        "techniques": {label: {"params": {"image": str(image), "against": against,
-                                          **({"channels": {n: picked[n][0] for n in run_lights}} if not shaded
-                                             else {"rgb": rgb_names})},
-                               "time_s": None, "metrics": m, "per_light": per_light_num}},
-        "images": {"truth": {"shaded": t_img, "vis": {n: truth_vis[n] for n in run_lights}},
-                   "techniques": {label: {"shaded": shaded_img, "vis": vis_imgs}}},
+        "light_info": light_info(spec.lights),  # the report's light summary (kind, size, what the truth is)
+        "ingest": {
+            "image": str(image),
+            "mode": "shaded" if shaded else "visibility",
+            "against": against,
+            "channels": ({n: picked[n][0] for n in run_lights} if not shaded else {"rgb": rgb_names}),
+            "notes": notes,
+            "labels": titles,
+        },
+        "techniques": {
+            label: {
+                "params": {
+                    "image": str(image),
+                    "against": against,
+                    **({"channels": {n: picked[n][0] for n in run_lights}} if not shaded else {"rgb": rgb_names}),
+                },
+                "time_s": None,
+                "metrics": m,
+                "per_light": per_light_num,
+            }
+        },
+        "images": {
+            "truth": {"shaded": t_img, "vis": {n: truth_vis[n] for n in run_lights}},
+            "techniques": {label: {"shaded": shaded_img, "vis": vis_imgs}},
+        },
     }
     if truth.mitsuba is not None and shaded:
         run["images"]["mitsuba"] = np.asarray(truth.mitsuba, np.float64)
@@ -332,9 +354,16 @@ def _load_gate(path) -> dict:
     if "std_error" in data and "variance" in data:
         raise InputError(f"--gate {path}: give std_error or variance, not both")
     parse_thresholds({k: data[k] for k in ("statistical", "budget") if k in data}, where=f"--gate {path}")
-    return {"name": str(data.get("name", p.stem)), "thresholds": {k: data[k] for k in ("statistical", "budget") if k in data},
-            "spread": ("std_error", data["std_error"]) if "std_error" in data else
-                      ("variance", data["variance"]) if "variance" in data else None, "path": str(p)}
+    return {
+        "name": str(data.get("name", p.stem)),
+        "thresholds": {k: data[k] for k in ("statistical", "budget") if k in data},
+        "spread": ("std_error", data["std_error"])
+        if "std_error" in data
+        else ("variance", data["variance"])
+        if "variance" in data
+        else None,
+        "path": str(p),
+    }
 
 
 def _spread_channel(g, ch, light, image, shaded):

@@ -173,7 +173,13 @@ class MeanObjective:
             raise ValueError("MeanObjective needs at least one objective")
         self.parts = list(objectives)
         first = self.parts[0]
-        self.frame, self.truth, self.tech, self.loss, self.fixed = first.frame, first.truth, first.tech, first.loss, first.fixed
+        self.frame, self.truth, self.tech, self.loss, self.fixed = (
+            first.frame,
+            first.truth,
+            first.tech,
+            first.loss,
+            first.fixed,
+        )
         self.lights = first.lights
         self.pixels = sum(o.pixels for o in self.parts)
         self.noise_floor = float(np.mean([o.noise_floor for o in self.parts]))

@@ -178,7 +178,13 @@ class PartsObjective:
         self.ex = executor or Embedded()
         self.parts, self.objs = list(parts), list(objectives)
         first = self.objs[0]
-        self.frame, self.truth, self.tech, self.loss, self.fixed = first.frame, first.truth, first.tech, loss, dict(fixed)
+        self.frame, self.truth, self.tech, self.loss, self.fixed = (
+            first.frame,
+            first.truth,
+            first.tech,
+            loss,
+            dict(fixed),
+        )
         self.lights = first.lights
         self.technique = technique
         self.pixels = sum(o.pixels for o in self.objs)

@@ -40,7 +40,7 @@ img.plot { max-width: 720px; border: 1px solid #ddd; }
 img.cbar { width: 192px; height: 10px; image-rendering: pixelated; display: block; margin-top: 3px; }
 .ticks { width: 192px; display: flex; justify-content: space-between; font-size: .75em; color: #444; }
 .note { font-size: .85em; color: #555; } code { font-size: .9em; }
-"""
+"""  # noqa: E501
 
 
 def check_out(out: Path, force: bool = False, protected=()):
@@ -121,9 +121,11 @@ def summary_table(run: dict) -> str:
         lines += ["", "Each scene with the joint preset (one preset minimising the mean loss over the scenes):", "",
                   "| technique | scene | frames | loss before | loss after | shaded RMSE penumbra before → after |",
                   "|---|---|---|---:|---:|---|"]
-        lines += [f"| {t} | {n} | {_frames(e['frames'])} | {_fmt(e['loss_before'])} | {_fmt(e['loss_after'])} | "
-                  f"{_fmt(e['metrics_before'].get('rmse_penumbra'))} → {_fmt(e['metrics_after'].get('rmse_penumbra'))} |"
-                  for t, n, e in scene_rows(run)]
+        lines += [
+            f"| {t} | {n} | {_frames(e['frames'])} | {_fmt(e['loss_before'])} | {_fmt(e['loss_after'])} | "
+            f"{_fmt(e['metrics_before'].get('rmse_penumbra'))} → {_fmt(e['metrics_after'].get('rmse_penumbra'))} |"
+            for t, n, e in scene_rows(run)
+        ]
     losses = {}
     for t, r in run["techniques"].items():
         losses.setdefault(r["loss"]["description"], []).append(t)
@@ -237,18 +239,23 @@ def _section(run: dict, t: str, r: dict, img_dir: Path, exposure: float) -> list
     for n, d in r["params"].items():
         win = f"[{_fmt(d['window'][0])}, {_fmt(d['window'][1])}] ({d['window_from']})" if "window" in d \
             else ", ".join(map(str, d["values"]))
-        p.append(f"<tr><td><code>{_e(n)}</code></td><td>{_e(d['method'])}</td><td>{_e(win)}</td>"
-                 f"<td>{_e(_fmt(d['start'], 6))}</td><td><b>{_e(_fmt(d['fitted'], 6))}</b></td><td>{_e(d['units'])}</td></tr>")
+        p.append(
+            f"<tr><td><code>{_e(n)}</code></td><td>{_e(d['method'])}</td><td>{_e(win)}</td>"
+            f"<td>{_e(_fmt(d['start'], 6))}</td><td><b>{_e(_fmt(d['fitted'], 6))}</b></td>"
+            f"<td>{_e(d['units'])}</td></tr>"
+        )
     p.append("</tbody></table>")
     lo = r["loss"]
     floor = f", noise floor {_fmt(lo['noise_floor_rmse'])} subtracted" if lo.get("noise_floor_subtracted") else ""
-    p.append(f"<p>Loss <code>{_e(lo['name'])}</code> ({_e(lo['description'])}; {lo['pixels']} pixels{_e(floor)}): "
-             f"<b>{_e(_fmt(r['loss_before']))} → {_e(_fmt(r['loss_after']))}</b>. "
-             f"{r['iterations']} iterations, {r['evaluations']} technique evaluations, "
-             f"{r['gradient_evaluations']} backward passes, {r['wall_time_s']:.2f} s. Kernels: {k['compiled']} compiled, "
-             f"{k['loaded_from_disk']} loaded from the disk cache, {k['launched']} launched; "
-             f"{k['iterations_with_new_kernels']} of {len(k['new_per_iteration'])} iterations met a kernel not in "
-             "the in-memory cache (parameters are opaque: a new value compiles nothing).</p>")
+    p.append(
+        f"<p>Loss <code>{_e(lo['name'])}</code> ({_e(lo['description'])}; {lo['pixels']} pixels{_e(floor)}): "
+        f"<b>{_e(_fmt(r['loss_before']))} → {_e(_fmt(r['loss_after']))}</b>. "
+        f"{r['iterations']} iterations, {r['evaluations']} technique evaluations, "
+        f"{r['gradient_evaluations']} backward passes, {r['wall_time_s']:.2f} s. Kernels: {k['compiled']} compiled, "
+        f"{k['loaded_from_disk']} loaded from the disk cache, {k['launched']} launched; "
+        f"{k['iterations_with_new_kernels']} of {len(k['new_per_iteration'])} iterations met a kernel not in "
+        "the in-memory cache (parameters are opaque: a new value compiles nothing).</p>"
+    )
     for note in r.get("notes") or ():
         p.append(f'<p class="note">Note: {_e(note)}</p>')
     if r["fixed"]:
@@ -299,7 +306,9 @@ def _page(run: dict, img_dir: Path, out: Path) -> str:
          f'(<code>shadowlab compare {_e(run["scenes"][0]["scene"] if run.get("scenes") else run["scene"])} '
          f'--preset {_e(out / "preset.toml")}</code>).</p>']
     if run.get("preset_in"):
-        p.append(f'<p class="note">Started from preset {_e(run["preset_in"]["name"])} ({_e(run["preset_in"]["path"])}).</p>')
+        p.append(
+            f'<p class="note">Started from preset {_e(run["preset_in"]["name"])} ({_e(run["preset_in"]["path"])}).</p>'
+        )
     rows = []
     for t, r in run["techniques"].items():
         rows.append(f'<tr><td><a href="#{_e(_slug(t))}">{_e(t)}</a></td><td>{_e(param_text(r))}</td>'

@@ -109,7 +109,11 @@ class Dim:
 
     def from_unit(self, u: float) -> float:
         a, b = _f32_inside(self.lo, self.hi)
-        x = self.lo * math.exp(u * math.log(self.hi / self.lo)) if self.scale == "log" else self.lo + u * (self.hi - self.lo)
+        x = (
+            self.lo * math.exp(u * math.log(self.hi / self.lo))
+            if self.scale == "log"
+            else self.lo + u * (self.hi - self.lo)
+        )
         if self.param.kind == "int":
             return int(round(min(max(x, self.lo), self.hi)))
         return float(np.clip(np.float32(x), a, b))

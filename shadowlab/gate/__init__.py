@@ -40,7 +40,8 @@ Targets: ``shaded`` (Σ U·V, the stored ``shaded.*`` with ``shaded.var.*``), ``
 light's ``V.<light>`` with ``V.<light>.se``), ``mitsuba`` (Mitsuba's ``direct`` image with its
 variance: the target for path-traced engine images, whose pixels are box-filtered, not point
 samples; that variance comes from 4 passes, so its Z-test uses Student-t p-values with
-Welch–Satterthwaite degrees of freedom, see :mod:`shadowlab.gate.stats`). A unanimous truth pixel (all n shadow rays agree) has no sample variance; its
+Welch–Satterthwaite degrees of freedom, see :mod:`shadowlab.gate.stats`). A unanimous truth pixel (all n shadow rays
+agree) has no sample variance; its
 rule-of-three bound B = 3/n counts as a standard deviation of B/2.
 
 Gate file (TOML, ``references/gates.toml``; paths relative to the file)::

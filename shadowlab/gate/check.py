@@ -251,7 +251,9 @@ def check(candidate, reference, thresholds, *, target: str = "shaded", light: st
         tgt = Target(kind, ref, rv, vm, pen, light, dof=reference_dof)
     hw = tgt.image.shape[:2]
     cand = _as_image("candidate image", candidate, tgt.kind, hw)
-    cvar = None if candidate_var is None else np.maximum(_as_image("candidate variance", candidate_var, tgt.kind, hw), 0)
+    cvar = (
+        None if candidate_var is None else np.maximum(_as_image("candidate variance", candidate_var, tgt.kind, hw), 0)
+    )
     res = GateResult(name=name, target=tgt.kind if tgt.light is None else f"visibility:{tgt.light}")
     res.images = {"candidate": cand, "reference": tgt.image, "error": cand - tgt.image, "pvalue": None,
                   "failed_pixels": None, "valid": tgt.valid}
@@ -263,11 +265,20 @@ def check(candidate, reference, thresholds, *, target: str = "shaded", light: st
         covered &= np.logical_or.reduce([np.asarray(lit, bool) & (np.asarray(V) > 0) for V, lit in tgt.lights.values()])
     n_pix = res.info["compared_pixels"] = int(covered.sum())
     if n_pix < MIN_GATE_PIXELS:
-        res.checks.append(Check(
-            "pixels", "coverage", float(n_pix), float(MIN_GATE_PIXELS), ">=", False,
-            f"{n_pix} pixel(s) to compare (seen by the camera and lit by a light in the truth), need >= {MIN_GATE_PIXELS}: "
-            "nothing to measure, so the gate cannot pass; point the camera at the lit scene and check that no "
-            "light is enclosed"))
+        res.checks.append(
+            Check(
+                "pixels",
+                "coverage",
+                float(n_pix),
+                float(MIN_GATE_PIXELS),
+                ">=",
+                False,
+                f"{n_pix} pixel(s) to compare (seen by the camera and lit by a light in the truth), need >= "
+                f"{MIN_GATE_PIXELS}: "
+                "nothing to measure, so the gate cannot pass; point the camera at the lit scene and check that no "
+                "light is enclosed",
+            )
+        )
     st = th.statistical
     if st is not None:
         zt = z_test(cand, tgt.image, tgt.var, cvar, tgt.valid, alpha=st.alpha, atol=st.atol, rtol=st.rtol, ptol=st.ptol,

@@ -187,8 +187,10 @@ def _candidate(where: str, base: Path, v, target: str, spec) -> CandidateSpec:
 def _stat_keys(where: str, table: Mapping) -> None:
     odd = [k for k in table if k not in STAT_DEFAULTS]
     if odd:
-        raise InputError(f"{where}: unknown statistical setting(s) {', '.join(odd)}{did_you_mean(odd[0], STAT_DEFAULTS)}; "
-                         f"known: {', '.join(STAT_DEFAULTS)}")
+        raise InputError(
+            f"{where}: unknown statistical setting(s) {', '.join(odd)}{did_you_mean(odd[0], STAT_DEFAULTS)}; "
+            f"known: {', '.join(STAT_DEFAULTS)}"
+        )
 
 
 def _resolution(where: str, v):
@@ -212,7 +214,9 @@ def gate_frames(where: str, spec, frame=None, frames=None) -> list | None:
             isinstance(frames, list) and len(frames) == 2 and all(isinstance(x, int) and not isinstance(x, bool)
                                                                  for x in frames))
         if not ok:
-            raise InputError(f"{where}: frames must be \"A:B\" or [A, B] (frame indices, both included), got {frames!r}")
+            raise InputError(
+                f"{where}: frames must be \"A:B\" or [A, B] (frame indices, both included), got {frames!r}"
+            )
     try:
         return frame_list(spec, frame, frames)
     except (InputError, SceneError) as e:

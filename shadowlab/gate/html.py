@@ -71,9 +71,11 @@ def _err_legend(scale: float) -> str:
 
 
 def _pvalue_legend(alpha: float) -> str:
-    return ('<div class="cbar pv" title="colour scale"></div><div class="ticks"><span>p = 1</span>'
-            f'<span>p = {alpha:.2g}</span></div><div class="ticks"><span><i class="sw" style="background:rgb(220,30,30)">'
-            '</i>fails</span><span><i class="sw" style="background:rgb(20,30,80)"></i>untested</span></div>')
+    return (
+        '<div class="cbar pv" title="colour scale"></div><div class="ticks"><span>p = 1</span>'
+        f'<span>p = {alpha:.2g}</span></div><div class="ticks"><span><i class="sw" style="background:rgb(220,30,30)">'
+        '</i>fails</span><span><i class="sw" style="background:rgb(20,30,80)"></i>untested</span></div>'
+    )
 
 
 def _images(r) -> list[tuple[str, str, str]]:

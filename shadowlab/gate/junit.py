@@ -38,8 +38,14 @@ def junit_xml(results, suite: str = "gates", time_s: float = 0.0, interrupted: s
             tc = ET.SubElement(ts, "testcase", {"classname": r.name, "name": c.name, "time": f"{per:.3f}"})
             if not c.passed:
                 f = ET.SubElement(tc, "failure", {"message": c.line(r.name), "type": c.kind})
-                f.text = "\n".join([c.line(r.name)] + [f"{k}: {v}" for k, v in r.info.items()
-                                                       if k in ("scene", "candidate", "reference", "description") and v])
+                f.text = "\n".join(
+                    [c.line(r.name)]
+                    + [
+                        f"{k}: {v}"
+                        for k, v in r.info.items()
+                        if k in ("scene", "candidate", "reference", "description") and v
+                    ]
+                )
             else:
                 so = ET.SubElement(tc, "system-out")
                 so.text = c.line(r.name)

@@ -124,7 +124,11 @@ class ShadowlabGate:
         if target is None:
             target = "shaded" if arr.ndim == 3 and arr.shape[-1] == 3 else "visibility"
         img = _as_image(f"shadowlab_gate image {name!r}", arr, target)
-        var = None if variance is None else _as_image(f"shadowlab_gate variance {name!r}", variance, target, img.shape[:2])
+        var = (
+            None
+            if variance is None
+            else _as_image(f"shadowlab_gate variance {name!r}", variance, target, img.shape[:2])
+        )
         if var is not None and (var < 0).any():
             raise InputError(f"shadowlab_gate: variance of {name!r} has negative values")
         if stamp is not None and not isinstance(stamp, str):

@@ -79,7 +79,8 @@ def exr_candidate(path, target: str, light: str | None, channel: str | None = No
     ``channel`` is a prefix: ``P.R|G|B`` (or plain ``R|G|B`` for ``channel = ""``) for the RGB
     targets, the channel ``P`` itself for a visibility target. Without it: a shadowlab
     ``truth.exr`` gives its target image and variance exactly as the reference does
-    (:func:`~shadowlab.gate.check.truth_target`, with its degrees of freedom); otherwise RGB targets look for ``shaded.*`` then
+    (:func:`~shadowlab.gate.check.truth_target`, with its degrees of freedom); otherwise RGB targets look for
+    ``shaded.*`` then
     ``R|G|B``, a visibility target for ``V.<light>``, ``shadow.<light>``, ``<light>`` or the only
     channel. The variance is ``variance`` (a prefix like the image's) or ``std_error`` squared; by
     default ``<P>.var`` (RGB or single) or ``<P>.se`` squared if present, else none (exact)."""
@@ -110,11 +111,15 @@ def exr_candidate(path, target: str, light: str | None, channel: str | None = No
     if variance is not None:
         var = _pick(ch, variance, rgb)
         if var is None:
-            raise InputError(f"{path}: variance channel(s) {variance!r} not found; its channels: {', '.join(sorted(ch))}")
+            raise InputError(
+                f"{path}: variance channel(s) {variance!r} not found; its channels: {', '.join(sorted(ch))}"
+            )
     elif std_error is not None:
         se = _pick(ch, std_error, rgb)
         if se is None:
-            raise InputError(f"{path}: std_error channel(s) {std_error!r} not found; its channels: {', '.join(sorted(ch))}")
+            raise InputError(
+                f"{path}: std_error channel(s) {std_error!r} not found; its channels: {', '.join(sorted(ch))}"
+            )
         var = np.asarray(se, np.float64) ** 2
     else:
         for suffix, sq in ((".var", False), (".se", True)):
@@ -284,7 +289,9 @@ def run_gate_file(path, out_dir=None, only=None, variant=None, echo=print,
         what = e.signal_name if isinstance(e, Interrupted) else "SIGINT"
         note = f"after {len(results)} of {n_gates} gates; the run is incomplete"
         if out_dir is not None:
-            _write_outputs(out_dir, path, results, time.perf_counter() - t0, interrupted=f"interrupted by {what} {note}")
+            _write_outputs(
+                out_dir, path, results, time.perf_counter() - t0, interrupted=f"interrupted by {what} {note}"
+            )
             note += f" ({out_dir / 'junit.xml'} records it as an error)"
         if isinstance(e, Interrupted):
             e.detail = note

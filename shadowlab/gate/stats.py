@@ -10,7 +10,8 @@ given). A variance estimated from few independent passes (Mitsuba's ``direct`` i
 3 degrees of freedom) is itself noisy, and z then has Student-t tails: at the Šidák level of 16 k
 pixels a normal p-value fails ~0.2 % of the pixels of two independent renders. Given the degrees
 of freedom ν_r, ν_c of the variances (None = exact), p comes from Student's t with the
-Welch–Satterthwaite ν = (var_r + var_c)² / (var_r²/ν_r + var_c²/ν_c). Because N values are tested at once, each is tested at the Šidák-corrected level
+Welch–Satterthwaite ν = (var_r + var_c)² / (var_r²/ν_r + var_c²/ν_c). Because N values are tested at once, each is
+tested at the Šidák-corrected level
 α_value = 1 − (1 − α)^(1/N), so that all N pass together with probability 1 − α when the candidate
 equals the reference up to noise. A value also passes when it is within the tolerance
 |d| ≤ atol + rtol·|r| + ptol·peak. σ = 0 with d ≠ 0 outside the tolerance is z = ±∞ (fails);

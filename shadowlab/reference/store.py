@@ -463,8 +463,9 @@ def _read(d: Path, cmd: str):
             try:
                 have = sha256_file(d / "truth.exr")
             except OSError as e:
-                raise ReferenceError_(f"cannot read {d / 'truth.exr'}: {e.strerror}; re-render it with `{cmd} --force`") \
-                    from None
+                raise ReferenceError_(
+                    f"cannot read {d / 'truth.exr'}: {e.strerror}; re-render it with `{cmd} --force`"
+                ) from None
             if have != want:
                 if attempt < 2 and read_json(d / "meta.json").get(CHECKSUM_KEY) != want:
                     continue  # a writer swapped the reference in between: read the new one
@@ -529,8 +530,17 @@ def load(scene_spec, resolution=None, base: Path | None = None, check_hash: bool
                                V_rgb_se=np.stack([ch[f"C.{n}.se.{c}"] for c in "RGB"], -1) if coloured else None)
         U[n] = np.stack([ch[f"U.{n}.{c}"] for c in "RGB"], -1)
     rgb = lambda p: np.stack([ch[f"{p}.{c}"] for c in "RGB"], -1) if f"{p}.R" in ch else None  # noqa: E731
-    truth = Truth(lights=lights, U=U, shaded=rgb("shaded"), shaded_var=rgb("shaded.var"), mitsuba=rgb("mitsuba"),
-                  mitsuba_var=rgb("mitsuba.var"), mask=ch["mask"] > 0.5, view_depth=ch["depth"], stats=meta.get("stats", {}))
+    truth = Truth(
+        lights=lights,
+        U=U,
+        shaded=rgb("shaded"),
+        shaded_var=rgb("shaded.var"),
+        mitsuba=rgb("mitsuba"),
+        mitsuba_var=rgb("mitsuba.var"),
+        mask=ch["mask"] > 0.5,
+        view_depth=ch["depth"],
+        stats=meta.get("stats", {}),
+    )
     return truth, meta
 
 
@@ -582,7 +592,9 @@ def _status(d: Path, scene: str, meta) -> list[str]:
                 out.append(f"stale: scene {scene!r} changed since; re-render with `{cmd} --force`")
     tm = meta.get("target_missed")
     if isinstance(tm, dict) and tm.get("pixels"):
-        out.append(f"{tm['pixels']} pixels above the target standard error (worst {tm.get('worst_se', float('nan')):.4f})")
+        out.append(
+            f"{tm['pixels']} pixels above the target standard error (worst {tm.get('worst_se', float('nan')):.4f})"
+        )
     return out
 
 

@@ -56,7 +56,8 @@ each adds to a pixel. ``contribution``: light L's target at a point is
     t_L = target_se · sqrt(S / U_L),   U_L its unshadowed light there (the channel sum), S = Σ_M U_M,
 
 capped at :data:`CONTRIBUTION_MAX_SE`, and a point where the light adds nothing (outside its range,
-facing away) is not sampled for it at all: V = 1 there, with no samples. The shaded pixel's error then stays within the same bound
+facing away) is not sampled for it at all: V = 1 there, with no samples. The shaded pixel's error then stays within the
+same bound
 relative to its light, Σ_L U_L² t_L² = target_se² · S · Σ_L U_L = (target_se · S)², and since a
 point's rounds grow as 1/t², each light's rays there are in proportion to its share U_L / S of the
 pixel's unshadowed light: a light that adds 5 % of a pixel's light gets a twentieth of the rays
@@ -144,7 +145,9 @@ def _round_values(mi_scene, si, emitter, rng, k, kk, rays, win):
         return Vr, v / mi.Float64(kk), v
     rgb, lit, dark = out[4], mi.Float64(out[5]), mi.Float64(out[6])
     code = (lit - dark + mi.Float64(kk)) * 0.5
-    return (Vr, v / mi.Float64(kk), code) + tuple(dr.select(ok, mi.Float64(c) / inv, 1.0) for c in (rgb.x, rgb.y, rgb.z))
+    return (Vr, v / mi.Float64(kk), code) + tuple(
+        dr.select(ok, mi.Float64(c) / inv, 1.0) for c in (rgb.x, rgb.y, rgb.z)
+    )
 
 
 def _round_hashes(seed: int, max_rounds: int):

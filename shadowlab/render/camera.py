@@ -216,7 +216,9 @@ class Camera:
         out = []
         for z in (float(z0), float(z1)):
             for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
-                out.append(self.position + z * (self.forward + sx * self.tan_x * self.right + sy * self.tan_y * self.up))
+                out.append(
+                    self.position + z * (self.forward + sx * self.tan_x * self.right + sy * self.tan_y * self.up)
+                )
         return np.array(out)
 
     def depth_range(self, center, radius: float) -> tuple:
@@ -292,7 +294,9 @@ class Camera:
         xe = ze * ((2.0 * xw - 1.0 - bx) / ax)
         ye = ze * ((1.0 - 2.0 * yw - by) / ay)
         if isinstance(ze, dr.ArrayBase):
-            o, r, u, f = (mi.Vector3f(*[float(c) for c in v]) for v in (self.position, self.right, self.up, self.forward))
+            o, r, u, f = (
+                mi.Vector3f(*[float(c) for c in v]) for v in (self.position, self.right, self.up, self.forward)
+            )
             return mi.Point3f(o + r * xe + u * ye + f * ze)
         xe, ye, ze = (np.asarray(a, np.float64).reshape(-1, 1) for a in (xe, ye, ze))
         return self.position[None] + xe * self.right[None] + ye * self.up[None] + ze * self.forward[None]

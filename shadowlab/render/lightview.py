@@ -532,7 +532,9 @@ class LightView:
         else:        # each face its own: gathered per point
             if any(f.ortho != f0.ortho for f in faces):
                 raise ValueError("a light view mixes orthographic and perspective faces")
-            s, near, far, sx, sy = (self.proj.face_param(face, k) for k in ("scale", "near", "far", "shift_x", "shift_y"))
+            s, near, far, sx, sy = (
+                self.proj.face_param(face, k) for k in ("scale", "near", "far", "shift_x", "shift_y")
+            )
             shifted = True
         if f0.ortho:
             x, y = qx / s, qy / s

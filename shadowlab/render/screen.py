@@ -84,7 +84,11 @@ class Screen:
         ok = np.isfinite(z) & (z > 0)
         py, px = np.meshgrid(np.arange(H) + 0.5, np.arange(W) + 0.5, indexing="ij")
         p = camera.unproject(px.ravel(), py.ravel(), np.where(ok, z, 1.0).ravel())
-        n = np.broadcast_to(-camera.forward, p.shape) if normal is None else np.asarray(normal, np.float64).reshape(-1, 3)
+        n = (
+            np.broadcast_to(-camera.forward, p.shape)
+            if normal is None
+            else np.asarray(normal, np.float64).reshape(-1, 3)
+        )
         f32 = lambda a: [np.ascontiguousarray(a[:, i], np.float32) for i in range(3)]  # noqa: E731
         return cls(camera, 1, mi.Point3f(*f32(p)), mi.Vector3f(*f32(n)), mi.Bool(ok.ravel()))
 

@@ -68,7 +68,9 @@ class Tiles:
         T = len(self.x0)
         if any(len(getattr(self, k)) != T for k in ("y0", "x1", "y1", "nx", "ny")):
             raise ValueError("Tiles: every field needs one value per tile")
-        if T and (np.any(self.x1 <= self.x0) or np.any(self.y1 <= self.y0) or np.any(self.nx < 1) or np.any(self.ny < 1)):
+        if T and (
+            np.any(self.x1 <= self.x0) or np.any(self.y1 <= self.y0) or np.any(self.nx < 1) or np.any(self.ny < 1)
+        ):
             raise ValueError("Tiles: expected x0 < x1, y0 < y1 and at least one texel per axis")
         if self.screen is not None:
             object.__setattr__(self, "screen", np.asarray(self.screen, np.float64).reshape(T, 4))
@@ -329,5 +331,8 @@ def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backfa
         depth.append(dn)
         slope.append(s)
     if len(depth) > 1:  # several wavefronts: one array again
-        depth, slope = [mi.Float(np.concatenate([a.numpy() for a in depth]))], [mi.Float(np.concatenate([a.numpy() for a in slope]))]
+        depth, slope = (
+            [mi.Float(np.concatenate([a.numpy() for a in depth]))],
+            [mi.Float(np.concatenate([a.numpy() for a in slope]))],
+        )
     return TiledView(light, base, int(bits), bool(backface), tiles, depth[0], slope[0], hits)

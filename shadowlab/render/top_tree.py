@@ -240,9 +240,20 @@ def build_top_tree(V: np.ndarray, light, *, origin=None, order="random") -> TopT
                 done[win] = True
             dropped += int(drop.sum())
             pend, node = pend[~done], node[~done]
-    return TopTree(planes=P[:used].copy(), cap=is_cap[:used].copy(), child=child[:used].astype(np.int32),
-                   level=depth[:used].astype(np.uint32), origin=origin, light=lo, depth=int(depth[:used].max(initial=0)), triangles=used // 4,
-                   dropped=dropped, degenerate=int(bad.sum()), rounds=rounds, seconds=time.perf_counter() - t0)
+    return TopTree(
+        planes=P[:used].copy(),
+        cap=is_cap[:used].copy(),
+        child=child[:used].astype(np.int32),
+        level=depth[:used].astype(np.uint32),
+        origin=origin,
+        light=lo,
+        depth=int(depth[:used].max(initial=0)),
+        triangles=used // 4,
+        dropped=dropped,
+        degenerate=int(bad.sum()),
+        rounds=rounds,
+        seconds=time.perf_counter() - t0,
+    )
 
 
 def stack_size(tree: TopTree) -> int:

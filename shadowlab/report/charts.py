@@ -160,10 +160,12 @@ def scatter_chart(title: str, points, *, xlabel: str, ylabel: str, width: int = 
             body.append(f'<circle cx="{cx:.1f}" cy="{cy:.1f}" r="5" fill="{col}" stroke="#333" stroke-width=".5">'
                         f"<title>{_e(name)}: {xlabel} {_fmt(xv)}, {ylabel} {_fmt(yv)}</title></circle>"
                         f'<text x="{cx + 7:.1f}" y="{cy + 4:.1f}">{_e(name)}</text>')
-    body.append(f'<rect x="{left}" y="{_TOP}" width="{pw}" height="{ph}" fill="none" stroke="#888"/>'
-                f'<text x="{left + pw / 2:.1f}" y="{height - 8}" text-anchor="middle">{_e(xlabel)}'
-                f'{" (log scale)" if log else ""}</text>'
-                f'<text transform="translate(12 {_TOP + ph / 2:.1f}) rotate(-90)" text-anchor="middle">{_e(ylabel)}</text>')
+    body.append(
+        f'<rect x="{left}" y="{_TOP}" width="{pw}" height="{ph}" fill="none" stroke="#888"/>'
+        f'<text x="{left + pw / 2:.1f}" y="{height - 8}" text-anchor="middle">{_e(xlabel)}'
+        f'{" (log scale)" if log else ""}</text>'
+        f'<text transform="translate(12 {_TOP + ph / 2:.1f}) rotate(-90)" text-anchor="middle">{_e(ylabel)}</text>'
+    )
     missing = [p[0] for p in points if p not in good]
     if missing:
         body.append(f'<text x="{width - 4}" y="16" text-anchor="end" fill="#999">n/a: {_e(", ".join(missing))}</text>')
@@ -201,9 +203,11 @@ def line_chart(title: str, xlabels, lines, *, xlabel: str, ylabel: str, width: i
                  for r in runs if len(r) > 1]
         body += [f'<circle cx="{x:.1f}" cy="{y:.1f}" r="3" fill="{cols[si]}"><title>{_e(name)}: {_fmt(v)}</title>'
                  "</circle>" for x, y, v in pts]
-    body.append(f'<rect x="{left}" y="{_TOP}" width="{pw}" height="{ph}" fill="none" stroke="#888"/>'
-                f'<text x="{left + pw / 2:.1f}" y="{height - 8}" text-anchor="middle">{_e(xlabel)}</text>'
-                f'<text transform="translate(12 {_TOP + ph / 2:.1f}) rotate(-90)" text-anchor="middle">{_e(ylabel)}</text>')
+    body.append(
+        f'<rect x="{left}" y="{_TOP}" width="{pw}" height="{ph}" fill="none" stroke="#888"/>'
+        f'<text x="{left + pw / 2:.1f}" y="{height - 8}" text-anchor="middle">{_e(xlabel)}</text>'
+        f'<text transform="translate(12 {_TOP + ph / 2:.1f}) rotate(-90)" text-anchor="middle">{_e(ylabel)}</text>'
+    )
     return _svg(width, height, title, body)
 
 
@@ -262,15 +266,23 @@ def _band_lines(techs, lights) -> list[str]:
     for ln in lights:
         kinds = {k: label for n in names for k, label, _ in band_kinds((techs[n].get("bands") or {}).get(ln, {}))}
         for kind, xlabel in ({"distance": "distance from the camera (m)"} | kinds).items():
-            rows = {n: {_band_label(r): r.get("rmse") for r in ((techs[n].get("bands") or {}).get(ln, {}).get(kind) or [])}
-                    for n in names}
+            rows = {
+                n: {_band_label(r): r.get("rmse") for r in ((techs[n].get("bands") or {}).get(ln, {}).get(kind) or [])}
+                for n in names
+            }
             rows = {n: d for n, d in rows.items() if d}
             if not rows:
                 continue
             xs = list(dict.fromkeys(x for d in rows.values() for x in d))
             cols = [colour(names.index(n)) for n in rows]
-            svg = line_chart(f"{ln}: visibility RMSE by {kind}", xs, {n: [d.get(x) for x in xs] for n, d in rows.items()},
-                             xlabel=xlabel, ylabel="rmse", colours=cols)
+            svg = line_chart(
+                f"{ln}: visibility RMSE by {kind}",
+                xs,
+                {n: [d.get(x) for x in xs] for n, d in rows.items()},
+                xlabel=xlabel,
+                ylabel="rmse",
+                colours=cols,
+            )
             out.append(_figure(svg, legend(list(rows), cols)))
     return out
 

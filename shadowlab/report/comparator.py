@@ -60,7 +60,7 @@ CSS = """
 #cmp-legend .ticks { width: 256px; display: flex; justify-content: space-between; }
 #cmp-status { font-variant-numeric: tabular-nums; color: #333; margin-top: .3em; }
 #cmp kbd { border: 1px solid #bbb; border-radius: 3px; padding: 0 3px; font-size: .9em; background: #fafafa; }
-"""
+"""  # noqa: E501
 
 _JS = r"""
 (function () {

@@ -98,7 +98,9 @@ def _html_page(summary: Mapping) -> str:
                  f"<p>|V<sub>t</sub>(x) − V<sub>t−1</sub>(x)| at fixed world points x ({e(sh['points'])}) with each "
                  f"frame's light views, over {len(sh['frames']) - 1} frame pairs.</p>"
                  "<table><tr><th>technique</th><th>light</th><th>mean</th><th>p99</th></tr>")
-        p += [f"<tr><td>{e(a)}</td><td>{e(b)}</td><td>{c}</td><td>{d}</td></tr>" for a, b, c, d in _shimmer_rows(summary)]
+        p += [
+            f"<tr><td>{e(a)}</td><td>{e(b)}</td><td>{c}</td><td>{d}</td></tr>" for a, b, c, d in _shimmer_rows(summary)
+        ]
         p.append(f"</table><p>Truth: {e(sh['truth']['why'])}.</p>")
     else:
         p.append("<p>Temporal stability (shimmer) needs two frames or more.</p>")

@@ -353,7 +353,7 @@ def summary_table(run: Mapping) -> str:
     | hard | **0.1235** | **18.2** | **0.0012** |
     <BLANKLINE>
     Best value per column in bold (highest for psnr/ssim, lowest otherwise). n/a = not available (NaN/inf are null in metrics.json).
-    """
+    """  # noqa: E501
     validate(run, need_images=False)
     w, h = (int(x) for x in run["resolution"])
     cols, names, rows = _table_cells(run)
@@ -415,7 +415,7 @@ figure.chart svg {{ display: block; max-width: 100%; height: auto; }}
 .chart-legend i {{ display: inline-block; width: .8em; height: .8em; margin-right: .3em; vertical-align: -1px; }}
 a.open {{ font-size: .6em; font-weight: normal; margin-left: .6em; }}
 details pre {{ white-space: pre-wrap; word-break: break-all; font-size: .8em; }}
-"""
+"""  # noqa: E501
 
 
 def _scalar_stat(v) -> bool:
@@ -474,7 +474,11 @@ def band_tables(t: Mapping) -> list[tuple[str, list[str], list[list[str]]]]:
         for kind, label, head in _charts.band_kinds(d):
             rows = d.get(kind) or []
             if rows:
-                keyf = (lambda r: f"{fmt_value(r['lo'])}–{fmt_value(r['hi'])}") if kind == "distance" else (lambda r: str(r["label"]))
+                keyf = (
+                    (lambda r: f"{fmt_value(r['lo'])}–{fmt_value(r['hi'])}")
+                    if kind == "distance"
+                    else (lambda r: str(r["label"]))
+                )
                 out.append((f"{ln}: visibility error by {label}", [head, *_BAND_KEYS],
                             [[keyf(r), *[fmt_value(r[k]) for k in _BAND_KEYS]] for r in rows]))
     return out
@@ -673,9 +677,12 @@ def _verdict(run: Mapping) -> list[str]:
                  "<th>value</th><th>threshold</th><th>details</th></tr></thead><tbody>")
         for c in sorted(checks, key=lambda c: bool(c.get("passed"))):  # failed checks first
             r, rc = ("PASS", "pass") if c.get("passed") else ("FAIL", "fail")
-            p.append(f"<tr><td>{_e(c.get('gate', ''))}</td><td><code>{_e(c.get('check', ''))}</code></td>"
-                     f'<td class="{rc}">{r}</td><td>{_e(fmt_value(c.get("value")))}</td>'
-                     f"<td>{_e(c.get('op', ''))} {_e(fmt_value(c.get('threshold')))}</td><td>{_e(c.get('text', ''))}</td></tr>")
+            p.append(
+                f"<tr><td>{_e(c.get('gate', ''))}</td><td><code>{_e(c.get('check', ''))}</code></td>"
+                f'<td class="{rc}">{r}</td><td>{_e(fmt_value(c.get("value")))}</td>'
+                f"<td>{_e(c.get('op', ''))} "
+                f"{_e(fmt_value(c.get('threshold')))}</td><td>{_e(c.get('text', ''))}</td></tr>"
+            )
         p.append("</tbody></table></div>")
     return p
 
@@ -742,7 +749,9 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
     emitter = imgs.get("emitter")
     vis_out = None if emitter is None or not emitter.any() else _im.grow(emitter)
     vis_err = {
-        name: {ln: _im.luminance(imgs["techniques"][name]["vis"][ln]) - _im.luminance(truth["vis"][ln]) for ln in lights}
+        name: {
+            ln: _im.luminance(imgs["techniques"][name]["vis"][ln]) - _im.luminance(truth["vis"][ln]) for ln in lights
+        }
         for name in techs
     }
     shaded_err = {name: _im.luminance(imgs["techniques"][name]["shaded"]) - truth_lum for name in techs}
@@ -840,7 +849,9 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
             tp += _panel_rows(ti, ln, name, f"{tag}_{{}}_{j}_{_slug(ln)}.png", put)
         sf = put(f"{tag}_shaded.png", _im.shaded_png(ti["shaded"], exposure))
         sef = put(f"{tag}_shaded_err.png", _im.encode_png(_im.signed_error_heatmap(shaded_err[name], shaded_scale)))
-        layers.insert(0, _cmp.layer("shaded", f"img/{sf}", f"img/{truth_shaded}", f"img/{sef}", fmt_value(shaded_scale)))
+        layers.insert(
+            0, _cmp.layer("shaded", f"img/{sf}", f"img/{truth_shaded}", f"img/{sef}", fmt_value(shaded_scale))
+        )
         cmp_items.append(_cmp.item(name, layers))
         tp.append(
             f'<tr><th class="row"><b>shaded</b><br>{_metric_line(t["metrics"])}</th>'
@@ -855,10 +866,13 @@ def _render(run: Mapping, imgs: dict, img_dir: Path) -> str:
                       + "".join("<tr>" + "".join(f"<td>{_e(c)}</td>" for c in r) + "</tr>" for r in rows)
                       + "</tbody></table>")
         for title, cols, rows in stats_tables(t.get("stats") or {}):
-            tp.append(f'<p class="note">stats per {_e(title[:-1])}</p><div class="wide"><table class="metrics"><thead><tr>'
-                      + "".join(f"<th>{_e(c)}</th>" for c in cols) + "</tr></thead><tbody>"
-                      + "".join("<tr>" + "".join(f"<td>{_e(c)}</td>" for c in r) + "</tr>" for r in rows)
-                      + "</tbody></table></div>")
+            tp.append(
+                f'<p class="note">stats per {_e(title[:-1])}</p><div class="wide"><table class="metrics"><thead><tr>'
+                + "".join(f"<th>{_e(c)}</th>" for c in cols)
+                + "</tr></thead><tbody>"
+                + "".join("<tr>" + "".join(f"<td>{_e(c)}</td>" for c in r) + "</tr>" for r in rows)
+                + "</tbody></table></div>"
+            )
 
     if cmp_items or cmp_last:
         p += ["<h2>Compare images</h2>",

@@ -129,7 +129,12 @@ class _Reader:
                 self.fail(key, f"a list of {n} numbers (missing)")
             return tuple(default)
         v = self.t[key]
-        if isinstance(v, (int, float)) and not isinstance(v, bool) and n == 3 and key in ("scale", "color", "albedo", "transmittance"):
+        if (
+            isinstance(v, (int, float))
+            and not isinstance(v, bool)
+            and n == 3
+            and key in ("scale", "color", "albedo", "transmittance")
+        ):
             v = [v] * 3
         if (not isinstance(v, list) or len(v) != n or
                 any(isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) for x in v)):

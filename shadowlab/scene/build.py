@@ -245,14 +245,20 @@ def surface_tau(si, table, active=True):
 
 def sensor_dict(cam, spp: int = 1, seed: int = 0) -> dict:
     W, H = cam.resolution
-    return {"type": "perspective", "fov": cam.fov, "fov_axis": "x", "near_clip": cam.near_clip, "far_clip": cam.far_clip,
-            "to_world": mi.ScalarTransform4f().look_at(origin=list(cam.position), target=list(cam.target),
-                                                      up=list(lights_mod.up_for(
-                                                          lights_mod._unit([t - p for t, p in zip(cam.target, cam.position)]),
-                                                          cam.up))),
-            "film": {"type": "hdrfilm", "width": W, "height": H, "rfilter": {"type": "box"},
-                     "pixel_format": "rgb"},
-            "sampler": {"type": "independent", "sample_count": spp, "seed": seed}}
+    return {
+        "type": "perspective",
+        "fov": cam.fov,
+        "fov_axis": "x",
+        "near_clip": cam.near_clip,
+        "far_clip": cam.far_clip,
+        "to_world": mi.ScalarTransform4f().look_at(
+            origin=list(cam.position),
+            target=list(cam.target),
+            up=list(lights_mod.up_for(lights_mod._unit([t - p for t, p in zip(cam.target, cam.position)]), cam.up)),
+        ),
+        "film": {"type": "hdrfilm", "width": W, "height": H, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+        "sampler": {"type": "independent", "sample_count": spp, "seed": seed},
+    }
 
 
 def build(spec: SceneSpec) -> Scene:

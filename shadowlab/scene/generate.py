@@ -60,9 +60,14 @@ def many_lights_data(n: int, seed: int = 0, resolution: tuple = (128, 128)) -> d
         if i < n:
             jx, jz = rng.uniform(-0.3, 0.3, 2) * CELL
             pos = [cx + jx, rng.uniform(1.3, 2.2), cz + jz]
-            light = {"name": f"L{i:03d}", "radius": round(float(rng.uniform(0.06, 0.12)), 3),
-                     "power": round(float(rng.uniform(50.0, 130.0)), 1), "range": round(float(rng.uniform(1.6, 2.6)), 3),
-                     "color": r3(1.0 - 0.35 * rng.random(3)), "shadow_map": 512}
+            light = {
+                "name": f"L{i:03d}",
+                "radius": round(float(rng.uniform(0.06, 0.12)), 3),
+                "power": round(float(rng.uniform(50.0, 130.0)), 1),
+                "range": round(float(rng.uniform(1.6, 2.6)), 3),
+                "color": r3(1.0 - 0.35 * rng.random(3)),
+                "shadow_map": 512,
+            }
             if i % 3 == 2:
                 tx, tz = rng.uniform(-0.5, 0.5, 2)
                 light.update(kind="spot", position=r3(pos), target=r3([pos[0] + tx, 0.0, pos[2] + tz]), angle=70)

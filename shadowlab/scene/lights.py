@@ -13,7 +13,7 @@
 
 Mitsuba has no area spot light, so a spot with a radius emits like a disk of that radius
 everywhere in front of it; its cone only sets the shadow map's field of view.
-"""
+"""  # noqa: E501
 
 from __future__ import annotations
 
@@ -99,7 +99,9 @@ def mitsuba_dict(light: LightSpec, scene_center, scene_radius) -> tuple[str, dic
         dist = SUN_DISTANCE * scene_radius
         pos = [c - dist * x for c, x in zip(scene_center, d)]
         r = dist * math.tan(math.radians(light.angular_diameter) / 2)
-        to_world = T().look_at(origin=pos, target=list(scene_center), up=list(up_for(d, light.up))) @ T().scale([r, r, 1])
+        to_world = T().look_at(origin=pos, target=list(scene_center), up=list(up_for(d, light.up))) @ T().scale(
+            [r, r, 1]
+        )
         return key, {"type": "disk", "to_world": to_world, "emitter": {"type": "area", "radiance": rgb}}
     if light.is_delta:
         if k == "spot":
@@ -110,7 +112,9 @@ def mitsuba_dict(light: LightSpec, scene_center, scene_radius) -> tuple[str, dic
     if k in ("sphere", "point"):
         return key, {"type": "sphere", "center": list(light.position), "radius": light.radius,
                      "emitter": {"type": "area", "radiance": rgb}}
-    look = T().look_at(origin=list(light.position), target=list(light.target), up=list(up_for(forward(light), light.up)))
+    look = T().look_at(
+        origin=list(light.position), target=list(light.target), up=list(up_for(forward(light), light.up))
+    )
     if k == "rect":
         to_world = look @ T().scale([light.size[0] / 2, light.size[1] / 2, 1])
         return key, {"type": "rectangle", "to_world": to_world, "emitter": {"type": "area", "radiance": rgb}}

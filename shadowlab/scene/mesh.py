@@ -18,7 +18,7 @@ sagitta of one segment: 0.12 % of the radius at s = 64). Normals: the exact surf
 at each vertex (smooth shading), transformed by the inverse transpose of ``to_world``.
 Triangles wind counter-clockwise around their normal (``cross(v1 − v0, v2 − v0)`` points the
 same way as the surface normal).
-"""
+"""  # noqa: E501
 
 from __future__ import annotations
 

@@ -83,8 +83,13 @@ def _object(path: str, where: str, st, top: bool, depth: int = 0) -> dict:
         scale = r.num("scale", default=1.0, lo=1e-9)
     else:
         scale = list(r.vec("scale", positive=True))
-    out = {"type": typ, "translate": list(r.vec("translate", default=(0, 0, 0))),
-           "rotate": [[float(x) for x in q] for q in rotations(r, st)], "scale": scale, "offset": r.num("offset", default=0.0)}
+    out = {
+        "type": typ,
+        "translate": list(r.vec("translate", default=(0, 0, 0))),
+        "rotate": [[float(x) for x in q] for q in rotations(r, st)],
+        "scale": scale,
+        "offset": r.num("offset", default=0.0),
+    }
     if typ == "sphere":
         out["center"] = list(r.vec("center", default=(0, 0, 0)))
         out["radius"] = r.num("radius", default=1.0, lo=1e-9)

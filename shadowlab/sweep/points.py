@@ -53,7 +53,8 @@ def parse_range(text: str, technique: str) -> ParamRange:
     """``NAME=LO:HI:N`` (or ``TECHNIQUE.NAME=…``, or ``…:N:log``) -> the values swept.
 
     N ≥ 2 points from LO to HI (LO ≤ HI, both included), evenly spaced (``log``: evenly in log,
-    LO > 0, rounded to 12 significant digits). An ``int`` parameter's values are rounded to the nearest integer and duplicates merged
+    LO > 0, rounded to 12 significant digits). An ``int`` parameter's values are rounded to the nearest integer and
+    duplicates merged
     (a note on stderr says so); fewer than 2 distinct values are refused. Only ``float`` and
     ``int`` parameters can be swept, and every value must lie in the parameter's declared range.
     Bad input is an InputError (exit 2) naming the problem and the fix.

@@ -116,7 +116,7 @@ def sweep_chart(title: str, xs, ys, *, xlabel: str, ylabel: str, best: int | Non
     if log and fx_lo > 0:
         a, b = math.log10(fx_lo), math.log10(fx_hi)
         fx = lambda v: (math.log10(v) - a) / ((b - a) or 1.0)  # noqa: E731
-        xt = [10.0 ** k for k in range(math.floor(a), math.ceil(b) + 1) if fx_lo <= 10.0 ** k <= fx_hi] or [fx_lo, fx_hi]
+        xt = [10.0**k for k in range(math.floor(a), math.ceil(b) + 1) if fx_lo <= 10.0**k <= fx_hi] or [fx_lo, fx_hi]
     else:
         xt = [t for t in nice_ticks(fx_lo, fx_hi) if fx_lo - 1e-12 <= t <= fx_hi + 1e-12] or [fx_lo, fx_hi]
         fx = lambda v: (v - fx_lo) / ((fx_hi - fx_lo) or 1.0)  # noqa: E731
@@ -141,7 +141,9 @@ def sweep_chart(title: str, xs, ys, *, xlabel: str, ylabel: str, best: int | Non
         prev = i
     runs.append(cur)
     c = colour(0)
-    body += [f'<polyline points="{" ".join(r)}" fill="none" stroke="{c}" stroke-width="2"/>' for r in runs if len(r) > 1]
+    body += [
+        f'<polyline points="{" ".join(r)}" fill="none" stroke="{c}" stroke-width="2"/>' for r in runs if len(r) > 1
+    ]
     for i, x, y in ok:
         body.append(f'<circle cx="{X(x):.1f}" cy="{Y(y):.1f}" r="3" fill="{c}"><title>{_e(xlabel)} {_fmt(xs[i])}: '
                     f"{_e(ylabel)} {_fmt(y)}</title></circle>")
@@ -155,7 +157,9 @@ def sweep_chart(title: str, xs, ys, *, xlabel: str, ylabel: str, best: int | Non
                     f'fill="{colour(2)}">best {_fmt(xs[best])}</text>')
     missing = [_fmt(xs[i]) for i in range(len(xs)) if i not in {j for j, _, _ in ok}]
     if missing:
-        body.append(f'<text x="{width - 4}" y="16" text-anchor="end" fill="#999">n/a at {_e(", ".join(missing))}</text>')
+        body.append(
+            f'<text x="{width - 4}" y="16" text-anchor="end" fill="#999">n/a at {_e(", ".join(missing))}</text>'
+        )
     body.append(f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" fill="none" stroke="#888"/>'
                 f'<text x="{left + pw / 2:.1f}" y="{height - 6}" text-anchor="middle">{_e(xlabel)}'
                 f'{" (log scale)" if log else ""}</text>')

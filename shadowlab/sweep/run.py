@@ -68,7 +68,8 @@ def sweep_jobs(scenes, technique: str, param: str, sets=None, resolution=None, f
         why = t.unsupported(sc.spec)
         if why:
             raise InputError(f"{technique} cannot render scene {sc.name!r}: {why}; sweep it on another scene")
-        truth, meta = store.load(sc.spec, sc.resolution, root)   # missing, stale, damaged: exit 2, `shadowlab reference …`
+        # missing, stale, damaged: exit 2, `shadowlab reference …`
+        truth, meta = store.load(sc.spec, sc.resolution, root)
         infos[sc.name] = {"scene": scene, "resolution": list(sc.resolution), "frame": sc.frame,
                           "reference": str(store.path_for(sc.name, sc.resolution, root, frame=sc.frame)),
                           "lights": [l.name for l in sc.lights]}

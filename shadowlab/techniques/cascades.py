@@ -105,8 +105,17 @@ from ..errors import InputError
 from ..io.png import NO_DATA
 from ..render.lightview import FrustumSlice, SceneSphere
 from . import esm, evsm, msm, pcf, pcss, shadow_map, vsm  # noqa: F401  (register the filter families)
-from .base import (LightResult, Panel, Param, RenderContext, Technique, get, needs_mitsuba_geometry, param_table_markdown,
-                   register)
+from .base import (
+    LightResult,
+    Panel,
+    Param,
+    RenderContext,
+    Technique,
+    get,
+    needs_mitsuba_geometry,
+    param_table_markdown,
+    register,
+)
 from .shadow_map import (BIAS_PARAMS, Points, SubFrame, check_map_params, map_entry, map_layers, map_settings,
                          map_stats)
 

@@ -58,7 +58,8 @@ tree has no texture lookups. SDF-only scenes have no triangles and are refused t
 Stats: the tree's ``nodes``, ``depth``, ``triangles`` and ``build_seconds`` per light;
 ``nodes_per_query`` (mean nodes visited per tree query); for the fused techniques
 ``edge_fraction`` (share of the active points that query the tree). AOVs: ``nodes_visited``,
-``depth_visited`` (the deepest tree level a point's query reached), ``edge`` (fused), ``penumbra_width``, ``filter_pixels``, ``blocker_depth`` (soft).
+``depth_visited`` (the deepest tree level a point's query reached), ``edge`` (fused), ``penumbra_width``,
+``filter_pixels``, ``blocker_depth`` (soft).
 """
 
 from __future__ import annotations

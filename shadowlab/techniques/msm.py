@@ -101,13 +101,37 @@ class MSM(PrefilteredTechnique):
     summary = ("four moments (z, z², z³, z⁴) of the normalised linear depth, separable prefilter blur, "
                "moment bias, Cholesky solve and three-candidate Hamburger reconstruction (Peters & Klein 2015)")
     channels = 4
-    params = FILTER_PARAMS + (
-        Param("moment_bias", 3e-5, "float", 0.0, 0.1, "", True, source="Peters & Klein 2015",
-              doc="α of b' = (1 − α)·b + α·(½, ½, ½, ½) (fp32 moments; larger α: fewer round-off artifacts, more leaking)"),
-        Param("msm_depth_bias", 0.0, "float", -0.1, 0.1, "zn", True, source="Peters & Klein 2015",
-              doc="subtracted from the receiver's normalised depth before the reconstruction"),
-        BLEED,
-    ) + MAP_PARAMS + RECEIVER_PARAMS
+    params = (
+        FILTER_PARAMS
+        + (
+            Param(
+                "moment_bias",
+                3e-5,
+                "float",
+                0.0,
+                0.1,
+                "",
+                True,
+                source="Peters & Klein 2015",
+                doc="α of b' = (1 − α)·b + α·(½, ½, ½, ½) (fp32 moments; larger α: fewer round-off artifacts, more "
+                    "leaking)",
+            ),
+            Param(
+                "msm_depth_bias",
+                0.0,
+                "float",
+                -0.1,
+                0.1,
+                "zn",
+                True,
+                source="Peters & Klein 2015",
+                doc="subtracted from the receiver's normalised depth before the reconstruction",
+            ),
+            BLEED,
+        )
+        + MAP_PARAMS
+        + RECEIVER_PARAMS
+    )
 
     def shade(self, view, rec, fp, bias, values):
         z = normalised_depth(view)

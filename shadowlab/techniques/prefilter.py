@@ -33,7 +33,8 @@ that ``FrameContext`` caches, is reused: a GPU would have rendered it anyway).
    1/n, the source's n×n grid) or ``gaussian`` (σ = n/6: the n texels span ±3σ, weights
    normalised to 1 after truncation). Two passes (rows, then columns), each one kernel per
    moment channel over every texel of every face (separate kernels: on the LLVM backend one
-   kernel writing 2–4 channels ran 4–5× slower than one per channel); taps outside a face are clamped to its border texel, so cube
+   kernel writing 2–4 channels ran 4–5× slower than one per channel); taps outside a face are clamped to its border
+   texel, so cube
    faces never bleed into each other. Blurred texel j averages texels j + k,
    k = −⌊n/2⌋ … n − 1 − ⌊n/2⌋: centred on j for odd n, on j − ½ for even n (the lookup
    shifts by that half texel, so every n filters the n×n square centred on the receiver).

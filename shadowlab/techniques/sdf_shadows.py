@@ -44,7 +44,7 @@ techniques ``<light>.r_min`` (the relative distance found, 1 where the cone was 
 ``<light>.t_min`` (distance along the march of the minimum). Stats: ``sdf_evals_per_point`` (mean
 over the shaded points, per light and ``all``), ``at_i_max`` (fraction of points stopped by
 ``i_max``) and ``light_radius`` per light.
-"""
+"""  # noqa: E501
 
 from __future__ import annotations
 
@@ -73,7 +73,9 @@ I_MAX = Param("i_max", 256, "int", 1, 8192, "steps", source="[Bán 2019, Alg. 3]
 _SPHERE = ("radius of the light sphere = light_scale × the scene light's radius R (sphere/point/disk/spot r; "
            "rect √(w·h/π); directional: the sun disk)")
 LIGHT_SCALE = light_scale_param("[Bán 2019, §3.2]", True, _SPHERE)
-LIGHT_SCALE_ND = light_scale_param("[Bán 2019, §3.2]", False, _SPHERE + " (not differentiable: the result is piecewise constant)")
+LIGHT_SCALE_ND = light_scale_param(
+    "[Bán 2019, §3.2]", False, _SPHERE + " (not differentiable: the result is piecewise constant)"
+)
 SURFACE_RADIUS = Param("surface_radius", 0.1, "float", 0.01, 8.0, "pixels", source="[Bán 2019, §2.9]",
                        doc="radius R0 of the surface sphere around a Mitsuba G-buffer point, in pixel widths at its "
                            "distance; the march starts from p + R0·n (cone-traced G-buffers bring their own)")
@@ -182,8 +184,10 @@ SINGLE_RAY_PARAMS = (EPSILON, DIRECTION, I_MAX, LIGHT_SCALE, SURFACE_RADIUS)
 class SDFAAHard(SingleRay):
     name = "sdf_aa_hard"
     title = "SDF anti-aliased hard shadow (single ray, light radius 0)"
-    summary = ("the single-ray algorithm with a point light ([Bán 2019, §4.3.3]): the cone from the surface sphere to the "
-               "light's centre gives a hard shadow whose edge is a ramp about one pixel wide")
+    summary = (
+        "the single-ray algorithm with a point light ([Bán 2019, §4.3.3]): the cone from the surface sphere to the "
+        "light's centre gives a hard shadow whose edge is a ramp about one pixel wide"
+    )
     params = (Param("variant", "linear", "choice", choices=("linear", "base"), source="[Bán 2019, §4.3.3]",
                     doc="the single-ray algorithm used (Algorithm 4 or 3)"),
               EPSILON, DIRECTION, I_MAX, AA_SURFACE_RADIUS)

@@ -61,7 +61,8 @@ Per frame:
    light's tint is the colour of the translucent casters in front of the receiver
    (:meth:`~shadowlab.render.lightview.LightView.tint`: their τ product where the receiver lies
    behind the nearest of them, by the same biased depth test as the hard shadows', against the
-   map of the nearest translucent surfaces, so a pane does not tint itself). The penumbra size still comes from every caster (the plain
+   map of the nearest translucent surfaces, so a pane does not tint itself). The penumbra size still comes from every
+   caster (the plain
    views), so a pane's shadow edge is blurred too. Per layer the tint (the members' product per
    channel) and its coverage (1 where tinted) are the layered translucency map: one RGBA8 word
    per layer (:func:`pack_rgba8`, R in the high byte; floor(255·v), as the source's
@@ -549,10 +550,18 @@ class SSSS(ShadowMapTechnique):
 
     def summarise(self, frame, values, ctx, lights):
         lay = ctx.layering
-        return {**super().summarise(frame, values, ctx, lights), "layers_used": lay.layers_used,
-                "max_degree": lay.max_degree, "layer_conflicts": lay.conflicts, "layer_edges": lay.edges,
-                "words_per_pixel": ctx.words, "translucency_words_per_pixel": ctx.twords,
-                "kernel": int(values["kernel"]), "penumbra": values["penumbra"], "layer_packing": values["layer_packing"]}
+        return {
+            **super().summarise(frame, values, ctx, lights),
+            "layers_used": lay.layers_used,
+            "max_degree": lay.max_degree,
+            "layer_conflicts": lay.conflicts,
+            "layer_edges": lay.edges,
+            "words_per_pixel": ctx.words,
+            "translucency_words_per_pixel": ctx.twords,
+            "kernel": int(values["kernel"]),
+            "penumbra": values["penumbra"],
+            "layer_packing": values["layer_packing"],
+        }
 
 
 __doc__ += "\n\nParameters of ``ssss`` (generated from the declaration):\n\n" + param_table_markdown(SSSS)

@@ -68,7 +68,8 @@ max(p_x, p_y)), ``demand`` (the root's demand levels [L_x, L_y]: the virtual map
 sub-pixel result needs), ``smtmm`` (its size), ``discarded_pixels`` and ``unshadowed_fraction``.
 AOVs: ``tile`` (the tile a pixel reads, −1 none), ``demand_x``, ``demand_y`` (L per pixel),
 ``provided_x``, ``provided_y`` (log2 of the virtual resolution its tile gives), ``cell`` (the
-SMTG cell, for the grid overlay); −1 where there is no surface or it lies outside the map. Every parameter steps the result (none is differentiable).
+SMTG cell, for the grid overlay); −1 where there is no surface or it lies outside the map. Every parameter steps the
+result (none is differentiable).
 
 Not done: LiSPSM focusing; semitransparent receivers ([Giegl 2007, §4.11] shadows them with one ordinary map):
 no built-in scene has them.
@@ -107,26 +108,61 @@ _CSM = {p.name: p for p in CSM_PARAMS}
 
 def _focus_params(default: str) -> tuple:
     return (
-        Param("focus", default, "choice", choices=FOCI, source="[Giegl 2007, §4.8]",
-              doc="the virtual map's light camera: the light-space square around the points the view sees (visible), "
-                  "the view frustum between the shadowed range's depths (its bounding sphere or light-space box, "
-                  "csm's fits), or the whole scene"),
-        replace(_CSM["snap"], doc="move the focused light across its direction by whole texels of the finest "
-                                  "possible virtual map (grid × t_max), so its texel grid holds still under small camera "
-                                  "moves; with focus = visible the square's side also steps by powers of two"),
-        replace(_CSM["pull"], doc="pull-back of the focused light from the frustum's centre, in radii of its bounding sphere"),
-        replace(_CSM["shadow_near"], doc="near end of the focused range (view depth); 0 = the camera's near clip within the scene"),
-        replace(_CSM["shadow_far"], doc="far end of the focused range (view depth); 0 = the camera's far clip within the scene"),
+        Param(
+            "focus",
+            default,
+            "choice",
+            choices=FOCI,
+            source="[Giegl 2007, §4.8]",
+            doc="the virtual map's light camera: the light-space square around the points the view sees (visible), "
+            "the view frustum between the shadowed range's depths (its bounding sphere or light-space box, "
+            "csm's fits), or the whole scene",
+        ),
+        replace(
+            _CSM["snap"],
+            doc="move the focused light across its direction by whole texels of the finest "
+            "possible virtual map (grid × t_max), so its texel grid holds still under small camera "
+            "moves; with focus = visible the square's side also steps by powers of two",
+        ),
+        replace(
+            _CSM["pull"],
+            doc="pull-back of the focused light from the frustum's centre, in radii of its bounding sphere",
+        ),
+        replace(
+            _CSM["shadow_near"],
+            doc="near end of the focused range (view depth); 0 = the camera's near clip within the scene",
+        ),
+        replace(
+            _CSM["shadow_far"],
+            doc="far end of the focused range (view depth); 0 = the camera's far clip within the scene",
+        ),
     )
 
 
 def _tile_params(grid_default: int, grid_doc: str) -> tuple:
     return (
-        Param("t_max", 1024, "int", 1, T_MAX_LIMIT, "texels", False, source="[Giegl 2007, §3]",
-              doc="largest tile texture side, a power of two ≤ 16384 (4096 in [Giegl 2007]; 1024 is under a second of rays "
-                  "on 2 CPU cores)"),
-        Param("grid", grid_default, "choice", units="tiles per axis", choices=GRIDS, source="[Giegl 2007, §3, §4.4]",
-              doc=grid_doc),
+        Param(
+            "t_max",
+            1024,
+            "int",
+            1,
+            T_MAX_LIMIT,
+            "texels",
+            False,
+            source="[Giegl 2007, §3]",
+            doc="largest tile texture side, a power of two ≤ 16384 (4096 in [Giegl 2007]; 1024 is under a second of "
+                "rays "
+            "on 2 CPU cores)",
+        ),
+        Param(
+            "grid",
+            grid_default,
+            "choice",
+            units="tiles per axis",
+            choices=GRIDS,
+            source="[Giegl 2007, §3, §4.4]",
+            doc=grid_doc,
+        ),
     )
 
 
@@ -134,27 +170,100 @@ def _tile_params(grid_default: int, grid_doc: str) -> tuple:
 #: tiles keep the first surface per texel only (``bias_mode`` first_hit)
 TILE_BIAS_PARAMS = tuple(p for p in BIAS_PARAMS if p.name not in ("resolution", "bias_mode", "grazing_slope_bias"))
 
-VTSM_PARAMS = _tile_params(8, "n: the virtual map is n × n tiles of t_max² each (16 in [Giegl 2007])") + _focus_params("visible")
+VTSM_PARAMS = _tile_params(8, "n: the virtual map is n × n tiles of t_max² each (16 in [Giegl 2007])") + _focus_params(
+    "visible"
+)
 
-FVSM_PARAMS = _tile_params(16, "n: the SMTG has n × n cells, the finest tiles (16 or 32 in [Giegl 2007])") + (
-    Param("xi", 0, "int", 0, 16, "log2 levels", False, source="[Giegl 2007, §4.9]",
-          doc="ξ: subtracted from the log2 demand when deciding to refine (0 … 5 in [Giegl 2007]; large = one ordinary map)"),
-    Param("smtmm_scale", 4, "int", 1, 16, "pixels", False, source="[Giegl 2007, §4.3, §5]",
-          doc="frame pixels per SMTMM pixel along each axis (4: a 256² SMTMM for a 1024² frame, as in [Giegl 2007])"),
-    Param("eta0", 17, "int", 0, LEVEL_MAX, "log2 texels", False, source="[Giegl 2007, §4.4, §5]",
-          doc="η0: demand levels below it share the histogram's lowest bucket"),
-    Param("eta1", 22, "int", 0, LEVEL_MAX, "log2 texels", False, source="[Giegl 2007, §4.4, §5]",
-          doc="η1: demand levels above it share the histogram's highest bucket (η0 < η1)"),
-    Param("discard", 0.0, "float", 0.0, 0.5, "fraction of a cell's pixels", False, source="[Giegl 2007, §4.4]",
-          doc="the share of a cell's SMTMM pixels with the highest demands that may go unmet (0 = none)"),
-    Param("tile_mode", "pow2", "choice", choices=TILE_MODES, source="[Giegl 2007, §4.10]",
-          doc="tile textures: sub-rectangles of one t_max² texture, of a power-of-two series (recommended), or of "
-              "the exact per-axis size (memory only: every mode renders the same texels)"),
-    Param("overlap", 1, "int", 0, 8, "texels", False, source="[Giegl 2007, §5]",
-          doc="texels each tile extends beyond its rectangle on every side (tiles overlap slightly)"),
-    Param("apply", "rect", "choice", choices=("rect", "full"), source="[Giegl 2007, §4.5, §5]",
-          doc="a tile shadows the screen rectangle of its pixels (rect) or the whole screen (full)"),
-) + _focus_params("visible")
+FVSM_PARAMS = (
+    _tile_params(16, "n: the SMTG has n × n cells, the finest tiles (16 or 32 in [Giegl 2007])")
+    + (
+        Param(
+            "xi",
+            0,
+            "int",
+            0,
+            16,
+            "log2 levels",
+            False,
+            source="[Giegl 2007, §4.9]",
+            doc="ξ: subtracted from the log2 demand when deciding to refine (0 … 5 in [Giegl 2007]; large = one "
+                "ordinary map)",
+        ),
+        Param(
+            "smtmm_scale",
+            4,
+            "int",
+            1,
+            16,
+            "pixels",
+            False,
+            source="[Giegl 2007, §4.3, §5]",
+            doc="frame pixels per SMTMM pixel along each axis (4: a 256² SMTMM for a 1024² frame, as in [Giegl 2007])",
+        ),
+        Param(
+            "eta0",
+            17,
+            "int",
+            0,
+            LEVEL_MAX,
+            "log2 texels",
+            False,
+            source="[Giegl 2007, §4.4, §5]",
+            doc="η0: demand levels below it share the histogram's lowest bucket",
+        ),
+        Param(
+            "eta1",
+            22,
+            "int",
+            0,
+            LEVEL_MAX,
+            "log2 texels",
+            False,
+            source="[Giegl 2007, §4.4, §5]",
+            doc="η1: demand levels above it share the histogram's highest bucket (η0 < η1)",
+        ),
+        Param(
+            "discard",
+            0.0,
+            "float",
+            0.0,
+            0.5,
+            "fraction of a cell's pixels",
+            False,
+            source="[Giegl 2007, §4.4]",
+            doc="the share of a cell's SMTMM pixels with the highest demands that may go unmet (0 = none)",
+        ),
+        Param(
+            "tile_mode",
+            "pow2",
+            "choice",
+            choices=TILE_MODES,
+            source="[Giegl 2007, §4.10]",
+            doc="tile textures: sub-rectangles of one t_max² texture, of a power-of-two series (recommended), or of "
+            "the exact per-axis size (memory only: every mode renders the same texels)",
+        ),
+        Param(
+            "overlap",
+            1,
+            "int",
+            0,
+            8,
+            "texels",
+            False,
+            source="[Giegl 2007, §5]",
+            doc="texels each tile extends beyond its rectangle on every side (tiles overlap slightly)",
+        ),
+        Param(
+            "apply",
+            "rect",
+            "choice",
+            choices=("rect", "full"),
+            source="[Giegl 2007, §4.5, §5]",
+            doc="a tile shadows the screen rectangle of its pixels (rect) or the whole screen (full)",
+        ),
+    )
+    + _focus_params("visible")
+)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -692,7 +801,11 @@ class VTSM(VirtualMap):
         tiles = Tiles(-1.0 + ix * w, 1.0 - (iy + 1) * w, -1.0 + (ix + 1) * w, 1.0 - iy * w,
                       np.full(n * n, t), np.full(n * n, t))
         mem = 4 * t * t
-        stats = {"memory_bytes": mem, "memory_modes": {m: mem for m in TILE_MODES}, "traversal_depth": int(round(math.log2(n)))}
+        stats = {
+            "memory_bytes": mem,
+            "memory_modes": {m: mem for m in TILE_MODES},
+            "traversal_depth": int(round(math.log2(n))),
+        }
         return tiles, np.arange(n * n).reshape(n, n), stats, {}
 
 
