@@ -116,17 +116,8 @@ class MSM(PrefilteredTechnique):
                 doc="α of b' = (1 − α)·b + α·(½, ½, ½, ½) (fp32 moments; larger α: fewer round-off artifacts, more "
                     "leaking)",
             ),
-            Param(
-                "msm_depth_bias",
-                0.0,
-                "float",
-                -0.1,
-                0.1,
-                "zn",
-                True,
-                source="Peters & Klein 2015",
-                doc="subtracted from the receiver's normalised depth before the reconstruction",
-            ),
+            Param("msm_depth_bias", 0.0, "float", -0.1, 0.1, "zn", True, source="Peters & Klein 2015",
+                  doc="subtracted from the receiver's normalised depth before the reconstruction"),
             BLEED,
         )
         + MAP_PARAMS

@@ -154,15 +154,8 @@ def _tile_params(grid_default: int, grid_doc: str) -> tuple:
                 "rays "
             "on 2 CPU cores)",
         ),
-        Param(
-            "grid",
-            grid_default,
-            "choice",
-            units="tiles per axis",
-            choices=GRIDS,
-            source="[Giegl 2007, §3, §4.4]",
-            doc=grid_doc,
-        ),
+        Param("grid", grid_default, "choice", units="tiles per axis", choices=GRIDS, source="[Giegl 2007, §3, §4.4]",
+              doc=grid_doc),
     )
 
 
@@ -200,39 +193,12 @@ FVSM_PARAMS = (
             source="[Giegl 2007, §4.3, §5]",
             doc="frame pixels per SMTMM pixel along each axis (4: a 256² SMTMM for a 1024² frame, as in [Giegl 2007])",
         ),
-        Param(
-            "eta0",
-            17,
-            "int",
-            0,
-            LEVEL_MAX,
-            "log2 texels",
-            False,
-            source="[Giegl 2007, §4.4, §5]",
-            doc="η0: demand levels below it share the histogram's lowest bucket",
-        ),
-        Param(
-            "eta1",
-            22,
-            "int",
-            0,
-            LEVEL_MAX,
-            "log2 texels",
-            False,
-            source="[Giegl 2007, §4.4, §5]",
-            doc="η1: demand levels above it share the histogram's highest bucket (η0 < η1)",
-        ),
-        Param(
-            "discard",
-            0.0,
-            "float",
-            0.0,
-            0.5,
-            "fraction of a cell's pixels",
-            False,
-            source="[Giegl 2007, §4.4]",
-            doc="the share of a cell's SMTMM pixels with the highest demands that may go unmet (0 = none)",
-        ),
+        Param("eta0", 17, "int", 0, LEVEL_MAX, "log2 texels", False, source="[Giegl 2007, §4.4, §5]",
+              doc="η0: demand levels below it share the histogram's lowest bucket"),
+        Param("eta1", 22, "int", 0, LEVEL_MAX, "log2 texels", False, source="[Giegl 2007, §4.4, §5]",
+              doc="η1: demand levels above it share the histogram's highest bucket (η0 < η1)"),
+        Param("discard", 0.0, "float", 0.0, 0.5, "fraction of a cell's pixels", False, source="[Giegl 2007, §4.4]",
+              doc="the share of a cell's SMTMM pixels with the highest demands that may go unmet (0 = none)"),
         Param(
             "tile_mode",
             "pow2",
@@ -242,25 +208,10 @@ FVSM_PARAMS = (
             doc="tile textures: sub-rectangles of one t_max² texture, of a power-of-two series (recommended), or of "
             "the exact per-axis size (memory only: every mode renders the same texels)",
         ),
-        Param(
-            "overlap",
-            1,
-            "int",
-            0,
-            8,
-            "texels",
-            False,
-            source="[Giegl 2007, §5]",
-            doc="texels each tile extends beyond its rectangle on every side (tiles overlap slightly)",
-        ),
-        Param(
-            "apply",
-            "rect",
-            "choice",
-            choices=("rect", "full"),
-            source="[Giegl 2007, §4.5, §5]",
-            doc="a tile shadows the screen rectangle of its pixels (rect) or the whole screen (full)",
-        ),
+        Param("overlap", 1, "int", 0, 8, "texels", False, source="[Giegl 2007, §5]",
+              doc="texels each tile extends beyond its rectangle on every side (tiles overlap slightly)"),
+        Param("apply", "rect", "choice", choices=("rect", "full"), source="[Giegl 2007, §4.5, §5]",
+              doc="a tile shadows the screen rectangle of its pixels (rect) or the whole screen (full)"),
     )
     + _focus_params("visible")
 )
