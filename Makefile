@@ -5,9 +5,9 @@ PY     := $(VENV)/bin/python
 LLVM_PKG ?= libllvm19
 CHROMIUM_PKG ?= chromium
 
-.PHONY: setup run-deps venv llvm browser demo test test-fast lint bench references docs clean
+.PHONY: setup run-deps venv llvm browser engines demo test test-fast lint bench references docs clean
 
-setup: venv llvm browser
+setup: venv llvm browser engines
 
 # what running shadowlab needs (the tests also need the browser)
 run-deps: venv llvm
@@ -48,6 +48,15 @@ browser:
 		echo "warning: no Chromium found; tests/test_report_browser.py needs it. Run: sudo apt-get install" \
 		     "$(CHROMIUM_PKG) (or set SHADOWLAB_CHROMIUM to a Chromium binary)." >&2; \
 	fi
+
+# The engines (three.js, Babylon.js) and the Khronos glTF validator, pinned by package-lock.json.
+engines: node_modules/.installed
+
+node_modules/.installed: package.json package-lock.json
+	@command -v npm >/dev/null || { echo "error: npm not found; the engine tests need Node.js >= 18 and npm." \
+		"Run: sudo apt-get install nodejs npm, then make again." >&2; exit 3; }
+	npm ci --no-audit --no-fund --loglevel=error
+	@touch $@
 
 demo: run-deps
 	$(VENV)/bin/shadowlab demo --out reports/demo
