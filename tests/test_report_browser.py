@@ -1,7 +1,7 @@
 """The report page in a real browser: headless Chromium (Debian's ``chromium``, which ``make
 setup`` installs) loads a report from ``file://`` and is driven through the DevTools protocol over
-a pipe (``--remote-debugging-pipe``: NUL-terminated JSON on file descriptors 3 and 4, so no
-websocket client and no Python package beyond the standard library).
+a pipe by :class:`shadowlab.io.browser.Browser` (``--remote-debugging-pipe``, standard library only;
+the engines use the same driver).
 
 A page passes when it loads with no uncaught exception, no console error and no failed resource
 (a missing image is a console error), every image on it has loaded, it fits a 1400 px window,
@@ -10,167 +10,22 @@ a person would: keys flip technique and truth and pick the modes, pointing at a 
 previews it, + zooms with nearest-neighbour pixels, arrows change the technique. A page with a
 deliberate JavaScript error must fail the same check (so the check can fail).
 
-Without Chromium these tests fail (they do not skip) and say how to install it.
+Without Chromium these tests fail (they do not skip): EnvironmentProblem says how to install it.
 """
 
 from __future__ import annotations
 
-import fcntl
-import json
-import os
-import select
 import shutil
-import subprocess
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from test_report import make_run
 
+from shadowlab.io.browser import Browser
 from shadowlab.report import build
 
-NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 WIDTH, HEIGHT = 1400, 900
-
-
-def chromium() -> str:
-    """The Chromium binary ($SHADOWLAB_CHROMIUM, else the first of NAMES on PATH); fails the test
-    with the fix when there is none."""
-    exe = os.environ.get("SHADOWLAB_CHROMIUM") or next(filter(None, map(shutil.which, NAMES)), None)
-    if exe and not shutil.which(exe):
-        pytest.fail(f"SHADOWLAB_CHROMIUM={exe} is not an executable file; point it at a Chromium binary or unset "
-                    "it (then `make setup` installs the Debian package chromium)", pytrace=False)
-    if not exe:
-        pytest.fail("Chromium is not installed; the report's browser test needs it. Run `make setup` (as root it "
-                    "installs the Debian package chromium with apt-get; otherwise run `sudo apt-get install "
-                    "chromium`), or point SHADOWLAB_CHROMIUM at a Chromium binary.", pytrace=False)
-    return exe
-
-
-def _high(fd: int) -> int:
-    """``fd`` moved to a descriptor ≥ 10, so that the child's 3 and 4 can be set without clashes."""
-    h = fcntl.fcntl(fd, fcntl.F_DUPFD, 10)
-    os.close(fd)
-    return h
-
-
-class Browser:
-    """Headless Chromium driven by the DevTools protocol over a pipe; one tab per :meth:`open`."""
-
-    def __init__(self, profile: Path):
-        to_r, self._w = map(_high, os.pipe())      # we write, Chromium reads fd 3
-        self._r, from_w = map(_high, os.pipe())    # Chromium writes fd 4, we read
-
-        def fds():
-            os.dup2(to_r, 3)
-            os.dup2(from_w, 4)
-
-        args = [chromium(), "--headless", "--disable-gpu", "--no-sandbox", "--remote-debugging-pipe",
-                f"--user-data-dir={profile}", f"--window-size={WIDTH},{HEIGHT}", "--hide-scrollbars",
-                "--no-first-run", "--disable-extensions", "about:blank"]
-        self.proc = subprocess.Popen(args, pass_fds=(3, 4), preexec_fn=fds, stdin=subprocess.DEVNULL,
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        os.close(to_r)
-        os.close(from_w)
-        self._buf, self._id, self.session, self.events = b"", 0, None, []
-
-    def _recv(self, deadline: float) -> dict:
-        while b"\0" not in self._buf:
-            ready, _, _ = select.select([self._r], [], [], max(0.0, deadline - time.monotonic()))
-            if not ready:
-                raise TimeoutError("Chromium did not answer in time")
-            chunk = os.read(self._r, 1 << 16)
-            if not chunk:
-                raise EOFError("Chromium closed the DevTools pipe: " + self.proc.stderr.read().decode()[-2000:])
-            self._buf += chunk
-        msg, _, self._buf = self._buf.partition(b"\0")
-        return json.loads(msg)
-
-    def call(self, method: str, params: dict | None = None, *, session: bool = True, timeout: float = 20.0) -> dict:
-        self._id += 1
-        msg = {"id": self._id, "method": method, "params": params or {}}
-        if session and self.session:
-            msg["sessionId"] = self.session
-        os.write(self._w, json.dumps(msg).encode() + b"\0")
-        deadline = time.monotonic() + timeout
-        while True:
-            m = self._recv(deadline)
-            if m.get("id") == self._id:
-                if "error" in m:
-                    raise RuntimeError(f"{method}: {m['error']}")
-                return m.get("result", {})
-            self.events.append(m)
-
-    def wait_for(self, event: str, timeout: float = 20.0) -> dict:
-        deadline = time.monotonic() + timeout
-        while True:
-            for e in self.events:
-                if e.get("method") == event and e.get("sessionId") == self.session:
-                    return e
-            self.events.append(self._recv(deadline))
-
-    def open(self, url: str) -> None:
-        """A new tab on ``url`` with its events recorded; returns after the load event (images loaded)."""
-        target = self.call("Target.createTarget", {"url": "about:blank"}, session=False)["targetId"]
-        self.session = self.call("Target.attachToTarget", {"targetId": target, "flatten": True},
-                                 session=False)["sessionId"]
-        self.events = []
-        for m in ("Runtime.enable", "Log.enable", "Page.enable"):
-            self.call(m)
-        self.call("Emulation.setDeviceMetricsOverride", {"width": WIDTH, "height": HEIGHT, "deviceScaleFactor": 1,
-                                                         "mobile": False})
-        self.call("Page.navigate", {"url": url})
-        self.wait_for("Page.loadEventFired")
-
-    def js(self, expr: str):
-        r = self.call("Runtime.evaluate", {"expression": expr, "returnByValue": True, "awaitPromise": True})
-        if "exceptionDetails" in r:
-            raise AssertionError(f"{expr}: {r['exceptionDetails']}")
-        return r["result"].get("value")
-
-    def errors(self) -> list[str]:
-        """Uncaught exceptions, console errors and failed loads of the current tab."""
-        out = []
-        for e in self.events:
-            m, p = e.get("method"), e.get("params", {})
-            if e.get("sessionId") != self.session:
-                continue
-            if m == "Runtime.exceptionThrown":
-                d = p["exceptionDetails"]
-                out.append(f"{d.get('exception', {}).get('description') or d.get('text')} "
-                           f"({d.get('url', '')}:{d.get('lineNumber')})")
-            elif m == "Runtime.consoleAPICalled" and p.get("type") in ("error", "assert"):
-                out.append("console.error: " + " ".join(str(a.get("value", a.get("description"))) for a in p["args"]))
-            elif m == "Log.entryAdded" and p["entry"].get("level") == "error":
-                out.append(f"{p['entry'].get('text')} {p['entry'].get('url', '')}")
-        return out
-
-    def key(self, key: str, code: str | None = None, vk: int = 0) -> None:
-        text = key if len(key) == 1 else ""
-        base = {"key": key, "code": code or key, "windowsVirtualKeyCode": vk, "nativeVirtualKeyCode": vk}
-        self.call("Input.dispatchKeyEvent", {"type": "keyDown" if text else "rawKeyDown", "text": text, **base})
-        self.call("Input.dispatchKeyEvent", {"type": "keyUp", **base})
-
-    def point_at(self, selector: str) -> None:
-        """Move the mouse onto the centre of the element ``selector`` (scrolled into view)."""
-        x, y = self.js(f"(() => {{ const e = document.querySelector({json.dumps(selector)}); e.scrollIntoView("
-                       "{block: 'center'}); const r = e.getBoundingClientRect(); return [r.x + r.width / 2, "
-                       "r.y + r.height / 2]; })()")
-        self.call("Input.dispatchMouseEvent", {"type": "mouseMoved", "x": x, "y": y})
-
-    def close(self) -> None:
-        try:
-            self.call("Browser.close", session=False, timeout=5)
-        except (OSError, TimeoutError, EOFError, RuntimeError):
-            pass
-        try:
-            self.proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-        os.close(self._w)
-        os.close(self._r)
 
 
 def _rich_run() -> dict:
@@ -197,7 +52,7 @@ def report(tmp_path_factory) -> Path:
 
 @pytest.fixture
 def browser(tmp_path):
-    b = Browser(tmp_path / "profile")
+    b = Browser(tmp_path / "profile", size=(WIDTH, HEIGHT))
     yield b
     b.close()
 
