@@ -408,12 +408,25 @@ def export(
     segments: int = typer.Option(64, "--segments", help="Tessellation of spheres, cylinders and disks."),
     spp: int = typer.Option(64, "--spp", help="Default samples per pixel written into scene.xml."),
     force: bool = typer.Option(False, "--force", help="Replace the exported files in an existing directory."),
+    fmt: str = typer.Option("mitsuba", "--format", help="mitsuba (scene.xml, PLY, JSON) or gltf (scene.glb)."),
     variant: Optional[str] = VariantOpt,
 ):
-    """Export a scene for another renderer: Mitsuba XML, PLY meshes, camera.json, lights.json."""
-    from .exchange.export import export_scene
+    """Export a scene for another renderer: Mitsuba XML, PLY meshes, camera.json, lights.json; or glTF 2.0."""
+    from .exchange.export import FORMATS, export_gltf, export_scene
     from .pipeline import parse_resolution
+    if fmt not in FORMATS:
+        raise InputError(f"--format {fmt!r}: expected one of {', '.join(FORMATS)}")
     _init(variant)
+    if fmt == "gltf":
+        r = export_gltf(scene, Path(out), resolution=parse_resolution(resolution), segments=segments, force=force)
+        W, H = r["manifest"]["resolution"]
+        v = r["validation"]
+        check = (f"glTF validator: {v['errors']} errors, {v['warnings']} warnings" if v.get("skipped") is None
+                 else f"not validated: {v['skipped']}")
+        typer.echo(f"exported {r['scene']} ({W}x{H}, {len(r['manifest']['lights'])} lights) to {r['path']}; {check}")
+        for line in v.get("lines", []):
+            typer.echo(f"  {line}")
+        return
     m = export_scene(scene, Path(out), resolution=parse_resolution(resolution), segments=segments, spp=spp,
                      force=force)
     W, H = m["resolution"]

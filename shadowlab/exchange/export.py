@@ -48,7 +48,7 @@ import mitsuba as mi
 import numpy as np
 
 from .. import backend
-from ..errors import InputError, SceneError
+from ..errors import EnvironmentProblem, InputError, SceneError
 from ..io.jsonio import write_json_atomic
 from ..io.png import encode_png
 from ..reference import store
@@ -56,15 +56,21 @@ from ..render.camera import Camera
 from ..io.outdir import claim_dir
 from ..scene import lights as lights_mod
 from ..scene.build import build, sensor_dict, shape_dicts
+from ..scene.gltf import InvalidExport, report_lines, validate_glb, write_glb
 from ..scene.spec import SceneSpec, load_spec, resolve
-from ..scene.mesh import matrix_of, sagitta, triangulate
+from ..scene.mesh import matrix_of, sagitta, shape_mesh, triangulate
 from .mitsuba_xml import dict_to_xml
 from .ply import write_ply
 from .shadow_camera import depth_bias_info, hard_defaults, shadow_camera
 
-__all__ = ["export_scene", "camera_info", "light_info", "EXPORT_FILES", "FORMAT_VERSION", "FILE_MODE", "DIR_MODE"]
+__all__ = ["export_scene", "export_gltf", "GLTF_FILE", "FORMATS", "camera_info", "light_info", "EXPORT_FILES",
+           "FORMAT_VERSION", "FILE_MODE", "DIR_MODE"]
 
 FORMAT_VERSION = 1
+#: the file ``shadowlab export --format gltf`` writes into ``--out``
+GLTF_FILE = "scene.glb"
+#: ``--format`` values: ``mitsuba`` (the files above, the default) and ``gltf`` (one .glb)
+FORMATS = ("mitsuba", "gltf")
 EXPORT_FILES = ("scene.xml", "scene_mesh.xml", "camera.json", "lights.json", "scene.json")
 EXPORT_DIRS = ("meshes", "textures")
 DEFAULT_SPP = 64
@@ -421,18 +427,15 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
         mesh_files, shapes_meta = {}, []
         exact_d, shape_d, light_d = _scene_dicts(sc, spp, None, save_bitmap, source_mesh)
         for s in spec.shapes:
-            parts = [triangulate(dd, segments) for dd in shape_d[s.name].values()]
-            P, N, UV, F, off = [], [], [], [], 0
-            for p, n, uv, f in parts:
-                P.append(p), N.append(n), UV.append(uv), F.append(f + off)
-                off += len(p)
+            P, N, UV, F = shape_mesh(s, segments)
+            off = len(P)
             rel = f"meshes/{s.name}.ply"
-            write_ply(tmp / rel, np.concatenate(P), np.concatenate(N), np.concatenate(UV), np.concatenate(F),
+            write_ply(tmp / rel, P, N, UV, F,
                       comment=f"shadowlab export of scene {spec.name}, shape {s.name} ({s.type}), world space, metres")
             mesh_files[s.name] = rel
             entry = {"name": s.name, "type": s.type, "ply": rel, "mitsuba_keys": list(shape_d[s.name]),
                      "albedo": [float(a) for a in s.albedo], "two_sided": bool(s.two_sided),
-                     "triangles": int(sum(len(f) for f in F)), "vertices": int(off)}
+                     "triangles": int(len(F)), "vertices": int(off)}
             if s.type in ("ply", "obj") and s.filename:
                 entry["source_mesh"] = sources[str(Path(s.filename).resolve())]
             if s.alpha_texture is not None:
@@ -515,3 +518,52 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return manifest
+
+
+def export_gltf(scene, out, *, resolution=None, segments: int = 64, force: bool = False, validate: bool = True,
+                protected=None) -> dict:
+    """``shadowlab export SCENE --format gltf``: write ``out/scene.glb`` (:func:`shadowlab.scene.gltf.write_glb`)
+    and check it with the Khronos validator when it is installed (``make engines``).
+
+    Returns ``{"path", "manifest", "validation"}``; ``validation`` is the validator's counts and its
+    error and warning lines, or ``{"skipped": why}`` without node or the npm package. The file is
+    written beside ``out/scene.glb`` first and replaces it only once it is valid: an export whose own
+    glb has validator errors raises :class:`~shadowlab.scene.gltf.InvalidExport` (exit 4, a shadowlab
+    bug) and leaves ``out`` as it was. ``out`` is refused as :func:`export_scene` refuses it."""
+    spec = scene if isinstance(scene, SceneSpec) else load_spec(resolve(scene))
+    if resolution:
+        spec = spec.with_resolution(*resolution)
+    out = Path(out)
+    claim_dir(out, "export", force=True, protected=[store.root()] if protected is None else protected)
+    target = out / GLTF_FILE
+    if target.exists() and not force:
+        raise InputError(f"export output {target} exists; pass --force to replace it or choose another --out")
+    backend.init()
+    sc = build(spec)
+    out.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=out, prefix=f".{GLTF_FILE}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        manifest = write_glb(sc, tmp, segments=segments)
+        validation = {"skipped": None}
+        if validate:
+            try:
+                rep = validate_glb(tmp)
+            except EnvironmentProblem as e:
+                validation = {"skipped": str(e)}
+            else:
+                issues = rep.get("issues", {})
+                validation = {"errors": int(issues.get("numErrors", 0)), "warnings": int(issues.get("numWarnings", 0)),
+                              "infos": int(issues.get("numInfos", 0)), "lines": report_lines(rep),
+                              "validator": rep.get("validatorVersion")}
+                if validation["errors"]:
+                    raise InvalidExport(f"the exported glTF of scene {spec.name!r} has {validation['errors']} "
+                                        "Khronos validator errors (" + "; ".join(validation["lines"][:3]) + "); this "
+                                        f"is a shadowlab bug, please report it with the scene file ({out} is as it "
+                                        "was)")
+        os.chmod(tmp, FILE_MODE)
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return {"path": str(target), "scene": spec.name, "manifest": manifest, "validation": validation}

@@ -31,7 +31,7 @@ from ..errors import SceneError
 
 from .build import shape_dicts
 
-__all__ = ["triangulate", "matrix_of", "sagitta", "scene_triangles"]
+__all__ = ["triangulate", "matrix_of", "sagitta", "scene_triangles", "shape_mesh"]
 
 
 def sagitta(segments: int) -> float:
@@ -164,6 +164,18 @@ def triangulate(d: dict, segments: int = 64):
         M = M @ S
     Pw, Nw = _apply(M, P, N)
     return Pw, Nw, UV, _oriented(Pw, Nw, F)
+
+
+def shape_mesh(shape, segments: int = 64):
+    """(positions, normals, uvs, faces) of one ShapeSpec as one mesh, world space: the triangulation
+    of each Mitsuba shape it becomes (a capped cylinder: tube and two caps), concatenated in that
+    order (what ``export`` writes as the shape's PLY and glTF mesh)."""
+    P, N, UV, F, off = [], [], [], [], 0
+    for d in shape_dicts(shape).values():
+        p, n, uv, f = triangulate(d, segments)
+        P.append(p), N.append(n), UV.append(uv), F.append(f + off)
+        off += len(p)
+    return np.concatenate(P), np.concatenate(N), np.concatenate(UV), np.concatenate(F)
 
 
 def scene_triangles(spec, segments: int = 64) -> tuple[np.ndarray, np.ndarray]:
