@@ -69,6 +69,10 @@ class SceneSphere:
     boxes, orthographic to the scene's bounding sphere with p = c − 2R·d). The default fit."""
 
 
+#: where a :class:`FrustumSlice` map's depth range starts (see there)
+NEAR_PLANES = ("caster", "light", "pancake")
+
+
 @dataclass(frozen=True)
 class FrustumSlice:
     """The camera-frustum slice between view depths ``z0`` < ``z1`` (m), for a directional light
@@ -83,8 +87,14 @@ class FrustumSlice:
     * ``snap=True`` moves p across the light direction to whole texels (the map is one texel
       wider, half size r·N/(N − 1), so the slice stays inside), so a camera translation moves the
       map's texel grid only by whole texels: stable cascaded shadow maps.
-    * depth range: from the scene's nearest caster toward the light (casters outside the slice
-      still shadow it) to the slice's far side.
+    * depth range, ``near_plane``: ``"light"`` (Code A.13, §2.2): the view volume starts at the
+      light position p (or at the slice's nearest corner where λ < 1 puts p inside the slice) and
+      ends at the slice's far side; a caster nearer to the light is clipped (not in the map), so
+      a λ too low loses casters and a λ too high spends depth precision;
+      ``"pancake"``: the same planes, a caster nearer to the light is clamped onto the near plane
+      (depth 0: depth clamping), so none is lost and λ sets only the depth precision;
+      ``"caster"``: from the scene's nearest caster toward the light to the slice's far side
+      (λ then moves p and both planes together and changes nothing).
     """
 
     z0: float
@@ -92,6 +102,7 @@ class FrustumSlice:
     pull: float = 2.0
     snap: bool = False
     bound: str = "sphere"
+    near_plane: str = "caster"
 
     def __post_init__(self):
         for k in ("z0", "z1", "pull"):
@@ -102,6 +113,8 @@ class FrustumSlice:
             raise InputError(f"FrustumSlice: pull (λ in radii of the slice's sphere) must be > 0, got {self.pull}")
         if self.bound not in ("sphere", "box"):
             raise InputError(f"FrustumSlice: bound {self.bound!r}: expected 'sphere' or 'box'")
+        if self.near_plane not in NEAR_PLANES:
+            raise InputError(f"FrustumSlice: near_plane {self.near_plane!r}: expected one of {', '.join(NEAR_PLANES)}")
         object.__setattr__(self, "snap", bool(self.snap))
 
 
@@ -350,7 +363,10 @@ def _frustum_slice(light, scene, res: int, fit: FrustumSlice) -> Projection:
     zs = (_corners(scene) - o) @ Rm[2]               # casters toward the light still shadow the slice
     zq = q[:, 2] - cz
     margin = 1e-3 * scene.radius
-    near = min(float(zq.min()), float(zs.min())) - margin
+    if fit.near_plane == "caster":
+        near = min(float(zq.min()), float(zs.min())) - margin
+    else:                                            # the light's position p, or the slice's nearest corner
+        near = min(0.0, float(zq.min())) - margin
     far = float(zq.max()) + margin
     return Projection((Face(tuple(o), tuple(map(tuple, Rm)), True, half, near, far),), res, False, fit)
 
@@ -599,6 +615,10 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     start = light.radius * 1.001 if light.kind in ("sphere", "point") else 1e-5 * scene.radius
     if proj.faces[0].ortho:  # orthographic rays start on the near plane or at the light's position
         start = min(0.0, proj.faces[0].near)
+        if isinstance(proj.fit, FrustumSlice) and proj.fit.near_plane == "pancake":  # from the nearest caster:
+            f0 = proj.faces[0]                       # its depth is clamped onto the near plane
+            start = min(start, float(np.min((_corners(scene) - np.array(f0.origin)) @ np.array(f0.R[2])))
+                        - 1e-3 * scene.radius)
     o_np = o_np + d_np * start
     ray = mi.Ray3f(mi.Point3f(*[o_np[:, k].astype(np.float32) for k in range(3)]),
                    mi.Vector3f(*[d_np[:, k].astype(np.float32) for k in range(3)]))

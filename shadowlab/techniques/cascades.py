@@ -17,8 +17,15 @@ the camera's clip planes, narrowed to the view depths the scene's bounding spher
 
 **Per-cascade light** (§4.2, Code A.13): :class:`~shadowlab.render.lightview.FrustumSlice` of the
 slice [C_i, C_{i+1}]: light position p = c − λ·d from the slice's centroid c, λ = ``pull`` × the
-slice's bounding-sphere radius (Code A.13's DistanceFactor; the map's depth range always starts
-at the scene's nearest caster toward the light, so casters outside the slice still shadow it);
+slice's bounding-sphere radius (Code A.13's DistanceFactor). ``near_plane`` = ``light`` (the
+default, as the source): the map's view volume starts at p (or at the slice's nearest corner where
+λ < 1 puts p inside the slice), so a caster farther toward the light than p is clipped: a λ too
+low loses casters, one too high spends depth precision (§2.2); ``pancake``: the same near plane,
+but such a caster is clamped onto it (depth 0) instead of clipped, so λ sets only the precision;
+``caster`` (shadowlab's former default): the depth range starts at the scene's nearest caster
+toward the light, so λ changes nothing (fit then leaves ``pull`` out). Measured against the truth
+(``docs/families/cascades.md``), ``light`` is the closest of the three on ``street`` and
+``boulevard``: the tighter depth range makes the depth-format biases smaller in world units;
 ``fit`` = ``sphere`` (the slice's bounding sphere, radius rounded up to 1/8 m as Code A.13 does:
 invariant under camera rotation) or ``box`` (the slice corners' light-space bounding square:
 tighter, but it changes with every camera move, so shadow edges shimmer); ``snap`` moves the
@@ -103,7 +110,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.png import NO_DATA
-from ..render.lightview import FrustumSlice, SceneSphere
+from ..render.lightview import NEAR_PLANES, FrustumSlice, SceneSphere
 from . import esm, evsm, msm, pcf, pcss, shadow_map, vsm  # noqa: F401  (register the filter families)
 from .base import (
     LightResult,
@@ -277,6 +284,10 @@ CSM_PARAMS = (
               "(within the scene's depth range)"),
     Param("pull", 2.0, "float", 0.25, 16.0, "slice radii", False, source="[Buljan 2020, §4.2, Code A.13]",
           doc="pull-back λ of the light position p = c − λ·r·d from the slice centroid (Code A.13's DistanceFactor)"),
+    Param("near_plane", "light", "choice", choices=NEAR_PLANES, source="[Buljan 2020, §2.2, Code A.13]",
+          doc="where each cascade's depth range starts: `light` at p = c − λ·r·d, casters nearer the light "
+              "clipped (Code A.13); `pancake` the same plane, such casters clamped onto it; `caster` the "
+              "scene's nearest caster (then `pull` changes nothing)"),
     Param("fit", "sphere", "choice", choices=("sphere", "box", "scene"), source="[Buljan 2020, §4.2, Code A.13]",
           doc="projection fit per cascade: the slice's bounding sphere (radius rounded to 1/8 m), its light-space "
               "bounding box (shimmers), or the whole scene (`hard`'s map; N = 1 equals `hard`)"),
@@ -352,10 +363,12 @@ class CSM(Technique):
 
     def fit_params(self, values: dict) -> tuple:
         """The parameters ``shadowlab fit`` searches by default: the cascades' continuous ones
-        (``split_lambda``, ``blend``, ``pull``; searched without gradients) and the chosen filter's
+        (``split_lambda``, ``blend``, and ``pull`` unless ``near_plane`` = ``caster`` makes it
+        inert; searched without gradients) and the chosen filter's
         own default fit parameters, under their csm names."""
         fam = family(values["filter"])
-        return ("split_lambda", "blend", "pull") + tuple(prefixed(fam.name, n)
+        pull = ("pull",) if values["near_plane"] != "caster" else ()
+        return ("split_lambda", "blend") + pull + tuple(prefixed(fam.name, n)
                                                          for n in fam.fit_params(self.family_values(values)))
 
     def prepare(self, frame, values, ctx):
@@ -373,8 +386,8 @@ class CSM(Technique):
         if values["fit"] == "scene":
             ctx.fits = [SceneSphere()] * N
         else:
-            ctx.fits = [FrustumSlice(C[i], C[i + 1], float(values["pull"]), bool(values["snap"]), values["fit"])
-                        for i in range(N)]
+            ctx.fits = [FrustumSlice(C[i], C[i + 1], float(values["pull"]), bool(values["snap"]), values["fit"],
+                                     values["near_plane"]) for i in range(N)]
 
     @staticmethod
     def cascade_values(fam: str, fv: dict, k: float) -> dict:

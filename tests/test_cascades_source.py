@@ -1,0 +1,112 @@
+"""``csm`` against its source [Buljan 2020, §2.2, §4.1–4.4, Code A.13–A.14]: the pull-back λ of
+p = c − λ·r·d places each cascade's light and near plane (and λ trades lost casters for depth
+precision), the per-cascade filter scale, the last cascade beyond C_N, the sphere fit's invariance
+under camera rotation, and the uniform split's worst case m̃ = n(f − n)/z."""
+
+import math
+
+import numpy as np
+import pytest
+
+from shadowlab.techniques import base
+
+from scene_builder import floor, frame_from, scene  # noqa: E402  (tests/ is on the path)
+
+#: a camera looking down at a floor, a plate 20 m up casting a square shadow into the view; a sun
+#: almost overhead
+CAM = {"position": [0.0, 1.5, 0.0], "target": [0.0, 0.0, -5.0], "fov": 50, "near": 0.5, "far": 12.0}
+SUN = {"name": "sun", "kind": "directional", "direction": [0.05, -1.0, 0.05], "irradiance": 3.0,
+       "angular_diameter": 0.0, "shadow_map": 256}
+PLATE = {"name": "plate", "type": "rectangle", "translate": [0.0, 20.0, -4.0], "rotate": [1, 0, 0, 90],
+         "scale": 1.5}
+HARD = {"cascades": 1, "fit": "sphere", "snap": False, "filter": "hard", "blend": 0.0, "shadow_near": 0.5,
+        "shadow_far": 12.0}
+
+
+@pytest.fixture(scope="module")
+def roof(mitsuba_backend):
+    return frame_from(scene("roof", camera=CAM, resolution=(64, 48), lights=[SUN],
+                            shapes=[floor(30.0), PLATE]))
+
+
+def _slice(frame, z0, z1):
+    """(centre c, radius r rounded up to 1/8 m, corners) of the view slice [z0, z1] (Code A.13)."""
+    from shadowlab.render.camera import Camera
+    corners = Camera.from_scene(frame.scene).frustum_corners(z0, z1)
+    c = corners.mean(axis=0)
+    r = math.ceil(float(np.max(np.linalg.norm(corners - c, axis=1))) * 8.0) / 8.0
+    return c, r, corners
+
+
+def _proj(frame, **kw):
+    from shadowlab.render.lightview import FrustumSlice, projection
+    light = frame.lights[0]
+    return projection(light, frame.scene, 256, FrustumSlice(0.5, 12.0, **kw))
+
+
+# ----------------------------------------------------------------------------- pull (Code A.13)
+
+@pytest.mark.parametrize("pull", [0.25, 1.0, 2.0, 5.0])
+def test_pull_puts_the_light_at_c_minus_lambda_r_d_and_the_near_plane_there(roof, pull):
+    """Code A.13: lightPos = c − DistanceFactor·radius·d; the view volume starts at the light (or,
+    with λ < 1, at the slice's nearest corner) and ends at the slice's farthest corner."""
+    from shadowlab.scene.lights import forward
+    c, r, corners = _slice(roof, 0.5, 12.0)
+    d = np.array(forward(roof.lights[0]))
+    d /= np.linalg.norm(d)
+    f = _proj(roof, pull=pull, near_plane="light").faces[0]
+    assert np.allclose(f.origin, c - pull * r * d, atol=1e-9)
+    zc = (corners - np.array(f.origin)) @ np.array(f.R[2])           # the corners' light-space depths
+    margin = 1e-3 * roof.scene.radius
+    assert f.near == pytest.approx(min(0.0, zc.min()) - margin, abs=1e-9)
+    assert f.far == pytest.approx(zc.max() + margin, abs=1e-9)
+    if pull >= 1.0:                                                   # every corner lies in front of p
+        assert f.near == pytest.approx(-margin) and zc.min() >= 0.0
+        assert f.far - f.near == pytest.approx(pull * r + float(((corners - c) @ d).max()) + 2 * margin)
+
+
+def test_a_larger_pull_spends_depth_precision_linearly_the_caster_plane_does_not_move(roof):
+    """The λ trade-off's second half (§2.2): the depth range, hence the step of a 16-bit depth
+    format in metres, grows by r per unit of λ; with ``caster`` both planes move with p."""
+    _, r, _ = _slice(roof, 0.5, 12.0)
+    span = {lam: (lambda f: f.far - f.near)(_proj(roof, pull=lam, near_plane="light").faces[0]) for lam in (1, 3)}
+    assert span[3] - span[1] == pytest.approx(2.0 * r, rel=1e-9)
+    step = {lam: s / (2 ** 16 - 1) for lam, s in span.items()}
+    assert step[3] > step[1] * 1.1
+    cas = [_proj(roof, pull=lam, near_plane="caster").faces[0] for lam in (1, 3)]
+    assert cas[0].far - cas[0].near == pytest.approx(cas[1].far - cas[1].near, rel=1e-9)
+
+
+def _plate_shadow(frame, values):
+    v = base.get("csm").render(frame, {**HARD, **values}).visibility["sun"].numpy()
+    return float(np.mean(v < 0.5))
+
+
+def test_a_pull_too_low_clips_a_caster_toward_the_light_and_pancaking_keeps_it(roof):
+    """The λ trade-off's first half (§2.2: "if λ is too low the view volume may not hold every
+    caster"): the plate 20 m up is in the map exactly when its light-space depth from p is past the
+    near plane (closed form from the face); ``pancake`` clamps it onto the plane, ``caster`` starts
+    at it: both keep its shadow for every λ."""
+    from shadowlab.scene.lights import forward
+    d = np.array(forward(roof.lights[0]))
+    d /= np.linalg.norm(d)
+    seen = {}
+    for lam in (0.25, 8.0):
+        f = _proj(roof, pull=lam, near_plane="light").faces[0]
+        plate_depth = float((np.array([0.0, 20.0, -4.0]) - np.array(f.origin)) @ d)
+        seen[lam] = plate_depth > f.near
+    assert seen == {0.25: False, 8.0: True}                          # the scene tells the λ apart
+    ref = _plate_shadow(roof, {"near_plane": "caster"})
+    assert 0.02 < ref < 0.5
+    assert _plate_shadow(roof, {"near_plane": "light", "pull": 0.25}) == 0.0
+    assert _plate_shadow(roof, {"near_plane": "light", "pull": 8.0}) == pytest.approx(ref, abs=0.01)
+    for lam in (0.25, 8.0):
+        assert _plate_shadow(roof, {"near_plane": "pancake", "pull": lam}) == pytest.approx(ref, abs=0.01)
+    assert _plate_shadow(roof, {"near_plane": "caster", "pull": 0.25}) == ref
+
+
+def test_pull_is_fitted_only_where_it_acts():
+    csm = base.get("csm")
+    assert "pull" in csm.fit_params(csm.resolve({}))
+    assert "pull" in csm.fit_params(csm.resolve({"near_plane": "pancake"}))
+    assert "pull" not in csm.fit_params(csm.resolve({"near_plane": "caster"}))
