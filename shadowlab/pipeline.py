@@ -33,7 +33,7 @@ from .reference.truth import SEED_MAX, render_truth, target_missed
 from .render.frame import FrameContext, make_frame
 from .render.gbuffer import vec_numpy
 from .render.shading import compose
-from .report import build
+from .report import Reference, Run, RunImages, TechniqueRun, build
 from .report.frames import build_frames
 from .report.images import emitter_pixels
 from .report.lights import light_info
@@ -367,40 +367,32 @@ def _compare_at(sc, scene, techniques, overrides, base, render_missing, progress
     truth, meta = loaded or _truth_of(sc, scene, base, render_missing, progress)
     frame = make_frame(sc, ss=int(meta.get("supersampling", 1)), seed=int(meta.get("seed", 0)))
     results = run_techniques(frame, techniques, overrides)
-    run = {
-        "scene": sc.name,
-        "resolution": list(sc.resolution),
-        "reference": {
-            "spp": float(np.mean(list(meta["samples"]["mean_rays_per_pixel"].values()))),
-            "rays_per_pixel": meta["samples"]["mean_rays_per_pixel"],
-            "max_std_error": meta["max_std_error"],
-            "shadow_rays": meta["samples"]["shadow_rays"],
-            "seed": meta.get("seed"),
-            "supersampling": int(meta.get("supersampling", 1)),
-            "path": str(store.path_for(sc.name, sc.resolution, base, frame=sc.frame)),
-        },
-        "lights": [l.name for l in sc.lights],
-        "techniques": {},
-        "images": {
-            "truth": {"shaded": truth.shaded, "vis": {n: lt.V for n, lt in truth.lights.items()}},
-            "techniques": {},
-        },
-        "machine": backend.machine_info(),
-    }
-    run["light_info"] = light_info(sc.spec.lights)
-    if sc.kind == "mitsuba":   # an SDF G-buffer's shape ids index SDF primitives, not Mitsuba shapes
-        run["images"]["emitter"] = emitter_pixels(frame.gbuffer.shape_id, sc.light_shapes)
-    if sc.frame is not None:
-        run["frame"] = sc.frame
-    if truth.mitsuba is not None:
-        run["images"]["mitsuba"] = truth.mitsuba
-    if preset is not None:
-        run["preset"] = preset
+    ref = Reference(
+        spp=float(np.mean(list(meta["samples"]["mean_rays_per_pixel"].values()))),
+        max_std_error=meta["max_std_error"],
+        details={"rays_per_pixel": meta["samples"]["mean_rays_per_pixel"],
+                 "shadow_rays": meta["samples"]["shadow_rays"],
+                 "seed": meta.get("seed"),
+                 "supersampling": int(meta.get("supersampling", 1)),
+                 "path": str(store.path_for(sc.name, sc.resolution, base, frame=sc.frame))})
+    techs, timgs = {}, {}
     for n, (res, p, timing) in results.items():
-        m, per_light, imgs = technique_metrics(frame, truth, res)
-        run["techniques"][n] = {"params": p, **timing, "metrics": m, "per_light": per_light,
-                                "stats": res.stats, "bands": error_bands(frame, truth, res)}
-        run["images"]["techniques"][n] = imgs
+        m, per_light, timgs[n] = technique_metrics(frame, truth, res)
+        techs[n] = TechniqueRun(p, timing["time_s"], m, per_light, first_run_s=timing["first_run_s"],
+                                stats=res.stats, bands=error_bands(frame, truth, res), name=n)
+    lights = [l.name for l in sc.lights]
+    images = RunImages.checked({
+        "truth": {"shaded": truth.shaded, "vis": {n: lt.V for n, lt in truth.lights.items()}},
+        "techniques": timgs, "mitsuba": truth.mitsuba,
+        # an SDF G-buffer's shape ids index SDF primitives, not Mitsuba shapes
+        "emitter": emitter_pixels(frame.gbuffer.shape_id, sc.light_shapes) if sc.kind == "mitsuba" else None,
+    }, (sc.resolution[1], sc.resolution[0]), lights, techs)
+    extras = {"machine": backend.machine_info()}
+    if sc.frame is not None:
+        extras["frame"] = sc.frame
+    if preset is not None:
+        extras["preset"] = preset
+    run = Run(sc.name, sc.resolution, ref, lights, techs, images, light_info(sc.spec.lights), extras)
     return run, frame, results
 
 
@@ -502,13 +494,13 @@ def compare(scene: str, techniques: list[str], sets: list[str] | None = None, ou
         "techniques": list(techniques),
         "lights": [l.name for l in sc.lights],
         "per_frame": {
-            str(r["frame"] if "frame" in r else 0): {
-                n: {"metrics": t["metrics"], "time_s": t["time_s"]} for n, t in r["techniques"].items()
+            str(r.extras.get("frame", 0)): {
+                n: {"metrics": t.metrics, "time_s": t.time_s} for n, t in r.techniques.items()
             }
             for r in runs
         },
         "reports": {str(f): f"frame_{f:04d}/index.html" for f in sel} if out is not None else {},
-        "params": {n: runs[0]["techniques"][n]["params"] for n in techniques},
+        "params": {n: runs[0].techniques[n].params for n in techniques},
     }
     if len(scenes) >= 2:
         summary["shimmer"] = shimmer(scenes, fixed, first)

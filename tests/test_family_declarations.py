@@ -12,7 +12,7 @@ import pytest
 
 from shadowlab.fit.objective import check_loss
 from shadowlab.fit.run import default_loss, default_params, reference_value, scene_floor
-from shadowlab.report import html
+from shadowlab.report.run import PANEL_CHANNELS
 from shadowlab.techniques import base, get, names
 
 
@@ -69,7 +69,7 @@ def test_from_the_scene_values_stand_for_the_scenes_and_keep_a_floor():
 
 
 def test_panel_kinds_are_what_the_report_draws():
-    assert set(html._PANEL_CHANNELS) == set(base.PANEL_KINDS)
+    assert set(PANEL_CHANNELS) == set(base.PANEL_KINDS)
     with pytest.raises(ValueError, match="is not one of"):
         base.Panel("sparkles", "t", (("k", ""),), "k")
     declared = [p for n in names() for p in get(n).panels]

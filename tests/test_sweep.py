@@ -12,7 +12,7 @@ import pytest
 
 from shadowlab import cli, pipeline
 from shadowlab.errors import InputError
-from shadowlab.report.html import to_jsonable
+from shadowlab.report.jsonable import to_jsonable
 from shadowlab.sweep import parse_range, results_only, sweep
 
 RES = (48, 48)

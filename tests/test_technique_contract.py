@@ -152,7 +152,7 @@ def test_pcss_light_scale_scales_every_light_by_its_own_size(two):
 
 
 def test_stats_tables_for_the_report():
-    from shadowlab.report.html import _NA, stats_markdown, stats_tables
+    from shadowlab.report.tables import NA as _NA, stats_markdown, stats_tables
     st = {"lights": {"a": {"resolution": 512, "light_size": 0.25, "maps": [{"near": 0.5, "far": 4.0}]},
                      "b": {"resolution": 256, "maps": [{"near": 0.5, "far": 2.0}, {"near": 2.0, "far": 9.0}]}}}
     (t1, c1, r1), (t2, c2, r2) = stats_tables(st)

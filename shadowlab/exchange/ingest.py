@@ -34,7 +34,7 @@ from ..gate.gatefile import read_toml
 from ..io.exr import check_finite, read_exr
 from ..metrics import compare_shaded, compare_visibility, penumbra_mask
 from ..reference import store
-from ..report import build
+from ..report import Run, build
 from ..report.lights import light_info
 from ..io.outdir import claim_dir
 from ..scene.spec import load_spec, resolve
@@ -324,6 +324,7 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
         run["images"]["mitsuba"] = np.asarray(truth.mitsuba, np.float64)
     if gate is not None:
         run["gate"] = _gate_results(g, truth, ch, image, shaded, img if shaded else None, picked, against, lit)
+    run = Run.from_mapping(run)
     if out is not None:
         build(Path(out), run, force=force, protected=[base or store.root()], kind="ingest")
     return run

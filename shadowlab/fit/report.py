@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import InputError
 from ..io.png import encode_png
 from ..report import images as _im
-from ..report.html import to_jsonable
+from ..report.jsonable import to_jsonable
 from ..io.outdir import claim_dir, write_dir
 from . import preset as P
 

@@ -15,7 +15,8 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
-from .html import fmt_value, to_jsonable
+from .jsonable import to_jsonable
+from .tables import fmt_value
 from ..io.outdir import MARKER, claim_dir, inside, marker_text
 
 __all__ = ["build_frames", "frames_summary", "FRAME_METRICS"]

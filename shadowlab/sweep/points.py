@@ -22,7 +22,7 @@ from ..errors import InputError
 from ..pipeline import load_scene, run_techniques, technique_metrics
 from ..reference import store
 from ..render.frame import make_frame
-from ..report.html import to_jsonable
+from ..report.jsonable import to_jsonable
 from ..techniques import base as tbase
 
 __all__ = ["SPACINGS", "ParamRange", "parse_range", "SweepPoint", "evaluate_point", "clear_cache"]

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..report.charts import colour, nice_ticks
-from ..report.html import to_jsonable
+from ..report.jsonable import to_jsonable
 from ..io.outdir import claim_dir, write_dir
 
 __all__ = ["OUTPUT_FILES", "summary_markdown", "sweep_chart", "page", "write_report"]

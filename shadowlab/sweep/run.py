@@ -22,7 +22,7 @@ from ..cluster.executor import check_address, check_workers
 from ..errors import InputError
 from ..pipeline import frame_list, load_scene
 from ..reference import store
-from ..report.html import higher_is_better
+from ..report.tables import higher_is_better
 from ..io.outdir import claim_dir
 from ..techniques import base as tbase
 from .points import SweepPoint, evaluate_point, parse_range, remember
