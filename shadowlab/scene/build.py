@@ -28,6 +28,7 @@ import numpy as np
 
 from ..errors import SceneError
 from . import lights as lights_mod
+from .gltf_file import mesh_arrays
 from .sdf_spec import bounds as sdf_bounds
 from .spec import SceneSpec, scene_spec
 from .textures import AlphaTextureError, opacity_mask, read_alpha
@@ -104,8 +105,33 @@ def shape_dicts(s) -> dict:
             out[s.name + "__cap1"] = {"type": "disk", "to_world": M @ frame @ T().translate([0, 0, length])
                                      @ T().scale([s.radius, s.radius, 1]), "bsdf": _bsdf(s)}
         return out
+    if s.type == "gltf":  # not a Mitsuba plugin: build() makes the mesh (gltf_mesh), triangulate reads it
+        return {s.name: {"type": "gltf", "filename": s.filename, "node": s.node, "primitive": s.primitive,
+                         "to_world": M, "bsdf": b}}
     return {s.name: {"type": s.type, "filename": s.filename, "to_world": M, "bsdf": b,
                      "face_normals": True}}
+
+
+def gltf_mesh(name: str, d: dict):
+    """The ``mi.Mesh`` of a ``gltf`` shape dict (:func:`shape_dicts`): the glTF primitive's triangles
+    in world space (:func:`shadowlab.scene.gltf_file.mesh_arrays`, then ``to_world``) as float32,
+    its uvs, no vertex normals (flat face normals, as ``ply`` / ``obj`` shapes with ``face_normals``),
+    the shape's BSDF; id ``name``."""
+    P, _, UV, F = mesh_arrays(d["filename"], d["node"], d.get("primitive"), np.array(d["to_world"].matrix, np.float64))
+    props = mi.Properties()
+    props["bsdf"] = mi.load_dict(d["bsdf"])
+    mesh = mi.Mesh(name, len(P), len(F), props, has_vertex_normals=False, has_vertex_texcoords=True)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(np.ascontiguousarray(P, np.float32).reshape(-1))
+    params["vertex_texcoords"] = mi.Float(np.ascontiguousarray(UV, np.float32).reshape(-1))
+    params["faces"] = mi.UInt(np.ascontiguousarray(F, np.uint32).reshape(-1))
+    params.update()
+    return mesh
+
+
+def _loadable(dicts: dict) -> dict:
+    """Shape dicts Mitsuba can load: a ``gltf`` dict becomes its mesh object."""
+    return {k: gltf_mesh(k, v) if v.get("type") == "gltf" else v for k, v in dicts.items()}
 
 
 @dataclass
@@ -267,7 +293,7 @@ def build(spec: SceneSpec) -> Scene:
     def geometry():  # fresh dicts per load: Mitsuba takes over a bitmap texture's "data" tensor
         geom = {}
         for s in spec.shapes:
-            geom.update(shape_dicts(s))
+            geom.update(_loadable(shape_dicts(s)))
         return geom
 
     try:

@@ -11,6 +11,7 @@ world-space positions, unit normals, uvs and triangles:
 | sphere       | radius 1 (or ``center`` + ``radius``)    | 2·s·(s/2) of a UV sphere (poles on ±z), s = ``segments``, vertices on the sphere | (φ/2π, θ/π) |
 | cylinder     | radius 1, z ∈ [0, 1], open               | 2·``segments``, vertices on the surface     | (φ/2π, z)               |
 | cube, ply, obj | Mitsuba's own mesh, read back after loading | as loaded (``face_normals``: unwelded, flat normals) | as loaded |
+| gltf         | the file's primitive (:mod:`.gltf_file`)  | as in the file (its ``NORMAL``)              | its ``TEXCOORD_0``       |
 
 Curved surfaces are inscribed (every vertex lies on the surface); the largest distance between
 a tessellated sphere / cylinder / disk rim and the true surface is r·(1 − cos(π/s)) (the
@@ -30,6 +31,7 @@ import numpy as np
 from ..errors import SceneError
 
 from .build import shape_dicts
+from .gltf_file import mesh_arrays
 
 __all__ = ["triangulate", "matrix_of", "sagitta", "scene_triangles", "shape_mesh"]
 
@@ -143,6 +145,8 @@ def triangulate(d: dict, segments: int = 64):
     t = d.get("type")
     if t in ("cube", "ply", "obj"):
         return _mitsuba_mesh(d)
+    if t == "gltf":  # the glTF's own triangles and normals, wound as the file winds them
+        return mesh_arrays(d["filename"], d["node"], d.get("primitive"), matrix_of(d["to_world"]))
     if t == "rectangle":
         P, N, UV, F = _rectangle()
     elif t == "disk":

@@ -11,10 +11,13 @@ description = "..."
               position, target, fov, up; missing ones default to [camera]'s) or
               [[camera.path.cameras]] (one camera per frame): see :class:`CameraPath`
 [[lights]]    name, kind = rect|disk|sphere|spot|point|directional, colour and power, size ...
-[[shapes]]    name, type = rectangle|disk|cube|sphere|cylinder|ply|obj, albedo, transform,
+[[shapes]]    name, type = rectangle|disk|cube|sphere|cylinder|ply|obj|gltf, albedo, transform,
               alpha_texture = "textures/leaf.png", alpha_cutoff = 0.5 (alpha-tested casters)
 [[sdf]]       SDF-only objects without a Mitsuba twin (Mandelbulb, CSG, ...): see shadowlab.scene.sdf_spec
 ```
+
+A ``.glb`` / ``.gltf`` file loads as a scene too: :mod:`shadowlab.scene.gltf_file` turns it (and its
+``NAME.shadowlab.toml`` sidecar) into this document, its meshes ``gltf`` shapes.
 
 Every error names the file, the key and what was expected (exit 2): an unknown key (with the
 closest known one), a key of another light kind or shape type (:data:`LIGHT_KEYS`,
@@ -41,11 +44,12 @@ else:  # pragma: no cover
 
 from ..errors import SceneError
 from ._reader import _Reader, rotations
+from .gltf_file import GLTF_SUFFIXES, scene_document
 from .sdf_spec import parse_sdf_tables
 from .textures import AlphaTextureError, read_alpha
 
 LIGHT_KINDS = ("rect", "disk", "sphere", "spot", "point", "directional")
-SHAPE_TYPES = ("rectangle", "disk", "cube", "sphere", "cylinder", "ply", "obj")
+SHAPE_TYPES = ("rectangle", "disk", "cube", "sphere", "cylinder", "ply", "obj", "gltf")
 DEPTH_BITS = (16, 24, 32)
 #: default camera clip planes (m): the ground truth's Mitsuba sensor has always used these, so a
 #: scene without ``camera.near`` / ``camera.far`` renders, exports and hashes as before they existed
@@ -202,7 +206,9 @@ class ShapeSpec:
     p0: tuple = (0.0, 0.0, 0.0)  # cylinder
     p1: tuple = (0.0, 1.0, 0.0)
     caps: bool = True            # cylinder: close the tube with two disks
-    filename: str | None = None  # ply / obj, resolved relative to the scene file
+    filename: str | None = None  # ply / obj / gltf, resolved relative to the scene file
+    node: int | str | None = None    # gltf: the mesh node (index or name)
+    primitive: int | None = None     # gltf: one primitive of its mesh (None: all)
     two_sided: bool = True
     alpha_texture: str | None = None  # alpha-tested caster: image file, resolved relative to the scene file
     alpha_cutoff: float = 0.5         # texels with alpha < cutoff are transparent (discarded)
@@ -313,6 +319,9 @@ class SceneSpec:
                 p = Path(tex)
                 s["alpha_texture_sha256"] = hashlib.sha256(p.read_bytes()).hexdigest() if p.exists() else None
                 s["alpha_cutoff"] = cutoff
+            for k in ("node", "primitive"):  # gltf shapes only: absent otherwise, as before the keys existed
+                if s[k] is None:
+                    s.pop(k)
             # translucency: likewise absent unless used
             tr, op = s.pop("transmittance"), s.pop("opacity")
             if tr is not None:
@@ -369,6 +378,7 @@ SHAPE_KEYS = {
     "sphere": _SHAPE_COMMON + ("center", "radius"),
     "cylinder": _SHAPE_COMMON + ("p0", "p1", "radius", "caps"),
     "ply": _SHAPE_COMMON + ("filename",), "obj": _SHAPE_COMMON + ("filename",),
+    "gltf": _SHAPE_COMMON + ("filename", "node", "primitive"),
 }
 
 
@@ -596,12 +606,20 @@ def _shape(path: str, i: int, st, names: set, snames: set, base: Path) -> ShapeS
             r.fail("p1", "a point different from p0 (the cylinder's axis runs from p0 to p1)", list(kw["p1"]))
         kw["radius"] = r.num("radius", default=1.0, lo=1e-6)
         kw["caps"] = r.bool("caps", True)
-    elif typ in ("ply", "obj"):
+    elif typ in ("ply", "obj", "gltf"):
         fn = r.str("filename")
         p = (base / fn).resolve()
         if not p.is_file():
-            r.fail("filename", f"an existing .{typ} file, relative to the scene file (looked for {p})", fn)
+            r.fail("filename", f"an existing .{'glb / .gltf' if typ == 'gltf' else typ} file, relative to the scene "
+                   f"file (looked for {p})", fn)
         kw["filename"] = str(p)
+        if typ == "gltf":
+            node = st.get("node")
+            if isinstance(node, bool) or not (isinstance(node, str) or (isinstance(node, int) and node >= 0)):
+                r.fail("node", "the glTF node of the mesh: its index (an integer >= 0) or its name", node)
+            kw["node"] = node
+            if r.has("primitive"):
+                kw["primitive"] = r.int("primitive", lo=0)
     if r.has("alpha_texture"):
         kw["alpha_texture"] = _alpha_texture(r, base)
         kw["alpha_cutoff"] = r.num("alpha_cutoff", default=0.5, lo=0.0, hi=1.0)
@@ -654,7 +672,7 @@ def parse(data: dict, path: str = "<scene>") -> SceneSpec:
     sdf = ()
     if "sdf" in data:
         sdf = parse_sdf_tables(data["sdf"], path, snames | names)
-        meshy = [s.name for s in shapes if s.type in ("ply", "obj") or s.alpha_tested]
+        meshy = [s.name for s in shapes if s.type in ("ply", "obj", "gltf") or s.alpha_tested]
         see_through = [s.name for s in shapes if s.translucent]
         if see_through:
             top.fail("sdf", "no [[sdf]] objects in a scene with translucent shapes (the SDF truth traces cones, "
@@ -691,6 +709,8 @@ def load_spec(path) -> SceneSpec:
     if not p.exists():
         raise SceneError(f"{p}: scene file not found; give a path to a .toml scene or the name of a "
                          "built-in scene (`shadowlab scenes` lists them)")
+    if p.suffix.lower() in GLTF_SUFFIXES and p.is_file():
+        return parse(scene_document(p, light_keys=LIGHT_KEYS), str(p))
     if p.is_dir():
         inside = sorted(q.name for q in p.glob("*.toml"))[:5]
         raise SceneError(f"{p}: is a directory, not a scene file; give a .toml scene file"
@@ -728,7 +748,7 @@ def builtin_names() -> list[str]:
 def resolve(scene: str) -> Path:
     """A built-in scene name or a path to a TOML file -> the file's path."""
     p = Path(scene)
-    if p.suffix == ".toml" or p.exists():
+    if p.suffix == ".toml" or p.suffix.lower() in GLTF_SUFFIXES or p.exists():
         return p
     cand = builtin_dir() / f"{scene}.toml"
     if cand.exists():
