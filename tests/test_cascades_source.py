@@ -10,7 +10,8 @@ import pytest
 
 from shadowlab.techniques import base
 
-from scene_builder import floor, frame_from, scene  # noqa: E402  (tests/ is on the path)
+from outdoor_scene import OUTDOOR  # noqa: E402  (tests/ is on the path)
+from scene_builder import floor, frame_from, scene  # noqa: E402
 
 #: a camera looking down at a floor, a plate 20 m up casting a square shadow into the view; a sun
 #: almost overhead
@@ -27,6 +28,12 @@ HARD = {"cascades": 1, "fit": "sphere", "snap": False, "filter": "hard", "blend"
 def roof(mitsuba_backend):
     return frame_from(scene("roof", camera=CAM, resolution=(64, 48), lights=[SUN],
                             shapes=[floor(30.0), PLATE]))
+
+
+@pytest.fixture(scope="module")
+def outdoor(mitsuba_backend):
+    """tests/outdoor_scene.py: boxes and poles from 2 m to 40 m, shadows in every cascade."""
+    return frame_from(OUTDOOR)
 
 
 def _slice(frame, z0, z1):
@@ -110,3 +117,37 @@ def test_pull_is_fitted_only_where_it_acts():
     assert "pull" in csm.fit_params(csm.resolve({}))
     assert "pull" in csm.fit_params(csm.resolve({"near_plane": "pancake"}))
     assert "pull" not in csm.fit_params(csm.resolve({"near_plane": "caster"}))
+
+
+# ----------------------------------------------------------------------------- filter per cascade
+
+def _recorded(frame, monkeypatch, values):
+    """(texel world size, softness) of every cascade's pcf evaluation."""
+    fam = type(base.get("pcf"))
+    seen, evaluate = [], fam.evaluate
+
+    def spy(self, sub, light, view, cv, ctx):
+        seen.append((2.0 * view.proj.faces[0].scale / view.res, float(cv["softness"])))
+        return evaluate(self, sub, light, view, cv, ctx)
+
+    monkeypatch.setattr(fam, "evaluate", spy)
+    r = base.get("csm").render(frame, {"cascades": 3, "filter": "pcf", "pcf_softness": 2.0, "blend": 0.0, **values})
+    monkeypatch.setattr(fam, "evaluate", evaluate)
+    return seen, r.visibility["sun"].numpy(), r.aovs["sun.cascade"]
+
+
+def test_the_filter_keeps_its_texels_or_its_world_size_per_cascade(outdoor, monkeypatch):
+    """``texel`` (Code A.14): softness 2 texels in every cascade; ``world``: cascade i taps at
+    2·t_0/t_i of its own texels, the same world footprint 2·t_0. Cascade 0 is the same either way,
+    the others differ."""
+    tex, v_tex, sel = _recorded(outdoor, monkeypatch, {"filter_scale": "texel"})
+    world, v_world, _ = _recorded(outdoor, monkeypatch, {"filter_scale": "world"})
+    assert len(tex) == len(world) == 3                                # every cascade holds points
+    t0 = world[0][0]
+    assert world[2][0] > 2.0 * t0                                      # the ratio matters here
+    assert all(s == 2.0 for _, s in tex)
+    for t, s in world:
+        assert s * t == pytest.approx(2.0 * t0, rel=1e-6)
+    sel = np.asarray(sel).reshape(-1)
+    assert np.array_equal(v_tex[sel == 0], v_world[sel == 0])
+    assert np.abs(v_tex - v_world)[sel >= 1].max() > 0.05
