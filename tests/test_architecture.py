@@ -6,7 +6,7 @@ stays in the technique families, and which names are private.
    :func:`test_imports.imports`) must be allowed by the importing package's row, every package
    must have a row, and no module imports the package root ``shadowlab`` (its ``__init__`` is
    the API, the top).
-2. **Family knowledge stays in the families.** ``pipeline.py``, ``report/`` and ``fit/`` must
+2. **Family knowledge stays in the families.** ``pipeline/``, ``report/`` and ``fit/`` must
    not name a family: no registered technique name (``csm``, ``vtsm``, ``pcss``, …), no key of
    a family's report images or error bands (``Technique.panels``, ``Technique.band_aovs``: e.g.
    ``cascade``, ``tile``, ``demand_x``), no AOV name those images are built from
@@ -19,7 +19,7 @@ stays in the technique families, and which names are private.
    forbidden words come from the registry, so a new family is covered without an edit here;
    :data:`PROSE` lists the few technique names that are also English words where a file uses
    them as such (``hard``).
-3. **Private names stay private.** In ``techniques/``, ``report/``, ``fit/``, ``pipeline.py``
+3. **Private names stay private.** In ``techniques/``, ``report/``, ``fit/``, ``pipeline/``
    and ``exchange/`` no module imports a ``_name`` from another module, and no code reads or
    writes another object's ``_attribute`` (``x._dr``) other than through ``self`` / ``cls``.
    A package's own helper modules (``techniques/_random.py``) may be imported by name.
@@ -47,14 +47,14 @@ DOC = ROOT / "docs" / "ARCHITECTURE.md"
 FAMILY_AOVS = frozenset({"blend_weight", "cell", "provided_x", "provided_y", "aliasing"})
 
 #: where family names may not appear (paths relative to shadowlab/)
-NEUTRAL = ("pipeline.py", "report", "fit")
+NEUTRAL = ("pipeline", "report", "fit")
 
 #: (file, word): a technique's name that is also an English word, used as that word in prose
 #: strings of that file (and nowhere as code)
 PROSE = {("shadowlab/report/lights.py", "hard"): "a spot light's hard cone, hard (delta-light) shadows in the truth"}
 
 #: where private names may not cross modules
-PRIVATE_SCOPE = ("techniques", "report", "fit", "pipeline.py", "exchange")
+PRIVATE_SCOPE = ("techniques", "report", "fit", "pipeline", "exchange")
 
 #: namedtuple's public methods, which start with "_" so as not to clash with field names
 NAMEDTUPLE_API = frozenset({"_asdict", "_replace", "_fields", "_make", "_field_defaults"})
@@ -189,7 +189,7 @@ def test_the_forbidden_words_come_from_the_families():
 
 def test_pipeline_report_and_fit_name_no_family():
     bad = family_mentions()
-    assert not bad, ("family knowledge in pipeline.py, report/ or fit/ (declare it on the family's Technique: "
+    assert not bad, ("family knowledge in pipeline/, report/ or fit/ (declare it on the family's Technique: "
                      "panels / report_images, band_aovs, fit_params, fit_loss, Param.from_scene):\n" + "\n".join(bad))
 
 
@@ -241,7 +241,7 @@ def _append(p: Path, text: str):
 
 
 @pytest.mark.parametrize("target, line, word", [
-    ("pipeline.py", 'CASCADE_KEY = "cascade"\n', "cascade"),
+    ("pipeline/compare.py", 'CASCADE_KEY = "cascade"\n', "cascade"),
     ("report/html.py", "def _csm_rows(ti):\n    return ti\n", "csm"),
     ("fit/run.py", 'LOSSES_BY_TECHNIQUE = {"vtsm": "rmse"}\n', "vtsm"),
     ("report/images.py", "def f(a):\n    return a.tile\n", "tile"),
@@ -270,6 +270,6 @@ def test_a_forbidden_import_is_found(copy):
 def test_a_private_name_crossing_is_found(copy):
     assert private_crossings(copy) == []
     _append(copy / "techniques" / "ssss.py", "from .pcss import _tap\n")
-    _append(copy / "pipeline.py", "def f(view):\n    return view._dr\n")
+    _append(copy / "pipeline" / "compare.py", "def f(view):\n    return view._dr\n")
     bad = private_crossings(copy)
     assert any("ssss.py" in b and "_tap" in b for b in bad) and any("view._dr" in b for b in bad), bad

@@ -53,7 +53,7 @@ def test_reference_is_not_overwritten_and_interrupts_leave_it_intact(tmp_path, m
     def boom(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pipeline, "render_truth", boom)
+    monkeypatch.setattr(pipeline.references, "render_truth", boom)
     with pytest.raises(KeyboardInterrupt):
         pipeline.reference(str(scene), base=base, force=True, progress=False)
     assert _digest(path) == before

@@ -315,7 +315,7 @@ def test_a_read_only_store_after_a_full_render_exits_2_and_keeps_the_reference(r
     scene, base, d = ref
     old = _digest(d)
     rendered = []
-    real = pipeline.render_truth
+    real = pipeline.references.render_truth
 
     def render_then_lock_store(*a, **k):
         out = real(*a, **k)
@@ -324,7 +324,7 @@ def test_a_read_only_store_after_a_full_render_exits_2_and_keeps_the_reference(r
             PermissionError(13, "Read-only file system")))
         return out
 
-    monkeypatch.setattr(pipeline, "render_truth", render_then_lock_store)
+    monkeypatch.setattr(pipeline.references, "render_truth", render_then_lock_store)
     rc, err = _cli(base, "reference", str(scene), "--force", "--max-rounds", "4", "--spp", "0")
     assert rendered and rc == 3 and "cannot write to the reference store" in err and "Read-only" in err, err
     assert "Traceback" not in err and _digest(d) == old and _leftovers(d) == []
