@@ -1,0 +1,235 @@
+"""Real engines as techniques: the page harness, the browser session and :class:`EngineTechnique`.
+
+An engine technique (``three:pcf``, ``babylon:pcss``, ...) renders the scene in the engine itself,
+headless in Chromium on WebGL 2 through SwiftShader (no GPU), and hands back per light the
+engine's shadow term as visibility in [0, 1] at the truth's pixel centres, so ``compare``,
+``fit``, ``sweep`` and ``gate`` treat it as any technique (docs/engines.md).
+
+How a render runs:
+
+* The scene is exported once per (scene, resolution) with :func:`shadowlab.scene.gltf.write_glb`
+  [Khronos 2017] and served with the engine's npm files (``node_modules``, pinned by the committed
+  ``package-lock.json``, installed by ``make engines``) and the adapter page (``engine_pages/``)
+  from a loopback HTTP server (:mod:`shadowlab.io.browser`, [Chrome DevTools 2026]): ES modules need ``http:``; nothing
+  comes from the network.
+* One Chromium per process (launched on first use, closed at exit) and one tab per (engine page,
+  scene): the page keeps the loaded glb; a new parameter point only sets the engine's shadow
+  properties and re-renders.
+* The page returns each light's visibility as the base64 of a Float32Array (read from an RGBA32F
+  render target: float32 precision) through ``Runtime.evaluate``; rows are flipped (WebGL's origin
+  is the bottom left) and, with supersampling, sub-pixels put in the G-buffer's point order.
+
+A missing Chromium or missing npm packages are an EnvironmentProblem (exit 3) naming ``make
+setup`` / ``make engines``; a page that fails to load is an EnvironmentProblem showing the console
+errors; an engine that cannot express a scene's feature says which (``unsupported``, exit 2).
+"""
+
+from __future__ import annotations
+
+import atexit
+import base64
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..errors import EnvironmentProblem, InputError
+from ..io import browser as browser_mod
+from ..scene import gltf
+from ..scene import lights as lights_mod
+from .base import ShadowResult, Technique, needs_mitsuba_geometry
+
+#: the adapter pages and their scripts (package data)
+PAGES = Path(__file__).with_name("engine_pages")
+#: seconds a page may take to load a scene, and one render
+LOAD_TIMEOUT, RENDER_TIMEOUT = 120.0, 300.0
+
+
+def node_modules() -> Path:
+    """``$SHADOWLAB_NODE_MODULES``, else the checkout's ``node_modules`` (where ``make engines``
+    installs the pinned engines)."""
+    env = os.environ.get("SHADOWLAB_NODE_MODULES")
+    return Path(env) if env else gltf.project_root() / "node_modules"
+
+
+def package_version(package: str) -> str:
+    """The installed version of npm ``package``; EnvironmentProblem naming ``make engines`` when it is missing."""
+    f = node_modules() / package / "package.json"
+    if not f.is_file():
+        raise EnvironmentProblem(f"the npm package {package} is not installed in {node_modules()}; run `make engines` "
+                                 "(npm ci from the committed package-lock.json)")
+    return json.loads(f.read_text())["version"]
+
+
+class Session:
+    """One Chromium with WebGL 2 and one loopback server for the process; one tab per loaded
+    (page, scene): :meth:`page` reuses the tab while the key is unchanged."""
+
+    def __init__(self):
+        self.dir = tempfile.TemporaryDirectory(prefix="shadowlab-engines-")
+        self.server = browser_mod.serve({"node_modules": node_modules(), "page": PAGES})
+        self.browser = browser_mod.Browser(Path(self.dir.name) / "profile", size=(256, 256), webgl=True)
+        self.key, self.info = None, None
+
+    def page(self, key, html: str, config: dict, glb: bytes) -> dict:
+        """Load ``html`` with ``config`` (its ``glb`` URL set here) unless ``key`` is what is loaded;
+        returns the page's load info. A page that fails: EnvironmentProblem with its console errors."""
+        if key == self.key:
+            return self.info
+        self.key = None
+        url = self.server.put("/scene/scene.glb", glb)
+        try:
+            self.browser.open(f"{self.server.url}/page/{html}", timeout=LOAD_TIMEOUT)
+            ready = self.browser.js("new Promise((ok) => { const t0 = Date.now(); (function wait() { "
+                                    "if (window.shadowlab && window.shadowlab.ready) ok(true); "
+                                    "else if (Date.now() - t0 > 20000) ok(false); else setTimeout(wait, 20); })(); })",
+                                    timeout=LOAD_TIMEOUT)
+            if not ready:
+                raise browser_mod.BrowserError("the page's script did not start")
+            self.info = self.browser.js(f"window.shadowlab.load({json.dumps({**config, 'glb': url})})",
+                                        timeout=LOAD_TIMEOUT)
+        except (browser_mod.BrowserError, TimeoutError) as e:
+            errs = "; ".join(self.browser.errors()[:5]) or "no console error"
+            raise EnvironmentProblem(f"the engine page {html} failed to load ({e}; console: {errs}); run `make "
+                                     "engines` to reinstall the pinned npm packages, and `make setup` for Chromium"
+                                     ) from None
+        self.key = key
+        return self.info
+
+    def render(self, params: dict) -> dict:
+        try:
+            return self.browser.js(f"window.shadowlab.render({json.dumps(params)})", timeout=RENDER_TIMEOUT)
+        except (browser_mod.BrowserError, TimeoutError) as e:
+            errs = "; ".join(self.browser.errors()[-5:]) or "no console error"
+            self.key = None
+            raise EnvironmentProblem(f"the engine page failed to render ({e}; console: {errs})") from None
+
+    def close(self) -> None:
+        self.browser.close()
+        self.server.close()
+        self.dir.cleanup()
+
+
+_SESSION: list = []
+
+
+def session() -> Session:
+    """The process's browser session, started on first use (Chromium checked, then the npm files)."""
+    if _SESSION and not _SESSION[0].browser.alive():
+        _SESSION.pop().close()
+    if not _SESSION:
+        browser_mod.chromium()
+        _SESSION.append(Session())
+        atexit.register(close_session)
+    return _SESSION[0]
+
+
+def close_session() -> None:
+    """Close the process's browser session (the next render starts a new one)."""
+    while _SESSION:
+        _SESSION.pop().close()
+
+
+def decode(b64: str, width: int, height: int) -> np.ndarray:
+    """A base64 Float32Array of a WebGL read-back (rows bottom to top) -> (H, W) float32, top row first.
+
+    >>> a = np.arange(6, dtype=np.float32)
+    >>> decode(base64.b64encode(a.tobytes()).decode(), 3, 2).tolist()
+    [[3.0, 4.0, 5.0], [0.0, 1.0, 2.0]]
+    """
+    a = np.frombuffer(base64.b64decode(b64), dtype="<f4")
+    if a.size != width * height:
+        raise EnvironmentProblem(f"the engine page returned {a.size} values for a {width}x{height} image")
+    return a.reshape(height, width)[::-1].copy()
+
+
+def to_points(img: np.ndarray, ss: int) -> np.ndarray:
+    """An (H·ss, W·ss) image at sub-pixel centres -> flat values in the G-buffer's point order
+    (pixel by pixel, row major; each pixel's ss² sub-pixels row major, as ``camera.pixel_uv``).
+
+    >>> to_points(np.arange(16.0).reshape(4, 4), 2)[:8].tolist()
+    [0.0, 1.0, 4.0, 5.0, 2.0, 3.0, 6.0, 7.0]
+    """
+    Hs, Ws = img.shape
+    H, W = Hs // ss, Ws // ss
+    return img.reshape(H, ss, W, ss).transpose(0, 2, 1, 3).reshape(-1)
+
+
+def camera_config(frame) -> dict:
+    """The truth's camera for the page: position, target, the actual up, the full vertical field of
+    view (the scene's ``fov`` spans the width) and the clip planes."""
+    cam = frame.camera
+    return {"position": cam.position.tolist(), "target": cam.target.tolist(), "up": cam.up.tolist(),
+            "fovY": cam.fov_y, "near": cam.near, "far": cam.far}
+
+
+class EngineTechnique(Technique):
+    """A technique whose shadows a real engine renders. Subclasses set ``engine`` (the npm package
+    whose version the stats record), ``page`` (the adapter page), ``shadow_type`` (the page's name of
+    the engine's shadow type) and ``params`` (the engine's own parameter names), and may refuse
+    scenes in :meth:`unsupported`; :meth:`engine_values` turns the resolved values into what the
+    page sets (default: as they are)."""
+
+    engine: str = ""
+    page_html: str = ""
+    shadow_type: str = ""
+
+    def unsupported(self, spec) -> str | None:
+        return needs_mitsuba_geometry(self.name, spec) or (
+            f"{self.name}: the scene has no lights for the engine to shadow" if not spec.lights else None)
+
+    def fit_params(self, values: dict) -> tuple:
+        """The engine's filter and bias parameters (nothing here is differentiable)."""
+        return tuple(p.name for p in self.params if p.kind == "float")[:3]
+
+    def engine_values(self, values: dict) -> dict:
+        return dict(values)
+
+    def _load(self, frame, sess: Session) -> dict:
+        gb = frame.gbuffer
+        W, H = gb.width * gb.ss, gb.height * gb.ss
+        spec = frame.scene.spec
+        key = (self.page_html, self.shadow_type, spec.name, spec.digest(), W, H, id(frame))
+        if key == sess.key:
+            return sess.info
+        with tempfile.TemporaryDirectory(prefix="shadowlab-glb-") as d:
+            manifest = gltf.write_glb(frame.scene, Path(d) / "scene.glb", resolution=(W, H))
+            glb = (Path(d) / "scene.glb").read_bytes()
+        lights = []
+        for entry, l in zip(manifest["lights"], frame.lights):
+            lights.append({"name": l.name, "node": entry["node"], "kind": l.kind, "type": entry["type"],
+                           "direction": [float(x) for x in lights_mod.forward(l)]})
+        cfg = {"type": self.shadow_type, "width": W, "height": H, "camera": camera_config(frame), "lights": lights}
+        return sess.page(key, self.page_html, cfg, glb)
+
+    def render(self, frame, params: dict | None = None) -> ShadowResult:
+        values = self.resolve(params)
+        why = self.unsupported(frame.scene.spec)
+        if why:
+            raise InputError(why)
+        version = package_version(self.engine)     # missing npm packages: exit 3 naming `make engines`
+        sess = session()
+        info = self._load(frame, sess)
+        t0 = time.perf_counter()
+        out = sess.render(self.engine_values(values))
+        wall = time.perf_counter() - t0
+        gb = frame.gbuffer
+        W, H = gb.width * gb.ss, gb.height * gb.ss
+        vis, lights = {}, {}
+        for l, r, maps in zip(frame.lights, out["lights"], out["maps"]):
+            flat = to_points(decode(r["vis"], W, H), gb.ss)
+            v = mi.Float(flat.astype(np.float32))
+            vis[l.name] = dr.select(gb.valid, v, 1.0)
+            lights[l.name] = {"maps": maps, "above_one": int(r["above_one"])}
+        dr.eval(*vis.values())
+        stats = {"engine": {"package": self.engine, "version": version, "shadow_type": self.shadow_type,
+                            "renderer": info.get("renderer", ""), "page_ms": float(out["ms"]),
+                            "render_s": wall},
+                 "lights": lights}
+        return ShadowResult(visibility=vis, stats=stats, technique=self)
+
