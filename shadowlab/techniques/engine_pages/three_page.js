@@ -25,6 +25,20 @@ function b64(f32) {
   return btoa(s);
 }
 
+function lambert(meshes, type) {
+  // a fresh white Lambert material per mesh (fresh: the CSM addon's onBeforeCompile must run for it)
+  return meshes.map((o) => {
+    const m0 = o.userData.glTFMaterial;
+    const m = new THREE.MeshLambertMaterial({ color: 0xffffff, side: THREE.DoubleSide });
+    m.shadowSide = (m0.shadowSide !== null && m0.shadowSide !== undefined) ? m0.shadowSide
+      : (type === 'vsm' ? m0.side : SHADOW_SIDE[m0.side]);
+    if (m0.alphaTest > 0) { m.alphaTest = m0.alphaTest; m.map = m0.map; m.alphaMap = m0.alphaMap; }
+    if (o.material !== m0) o.material.dispose();
+    o.material = m;
+    return m;
+  });
+}
+
 function findLight(obj) {
   let found = null;
   obj.traverse((o) => { if (!found && o.isLight) found = o; });
@@ -70,19 +84,16 @@ async function load(cfg) {
 
   // every surface: white Lambert, seen from both sides by the camera (the truth's rays hit both),
   // casting into the shadow map with the side three.js would use for the glTF material
-  const materials = [];
+  const meshes = [];
   scene.traverse((o) => {
     if (!o.isMesh) return;
     const m0 = o.material;
-    const m = new THREE.MeshLambertMaterial({ color: 0xffffff, side: THREE.DoubleSide });
-    m.shadowSide = (m0.shadowSide !== null && m0.shadowSide !== undefined) ? m0.shadowSide
-      : (cfg.type === 'vsm' ? m0.side : SHADOW_SIDE[m0.side]);
-    if (m0.alphaTest > 0) { m.alphaTest = m0.alphaTest; m.map = m0.map; m.alphaMap = m0.alphaMap; }
-    o.material = m;
+    o.userData.glTFMaterial = m0;
     o.castShadow = true;
     o.receiveShadow = true;
-    materials.push(m);
+    meshes.push(o);
   });
+  const materials = lambert(meshes, cfg.type);
 
   // the lights of the manifest, in the truth's order
   const lights = [];
@@ -124,7 +135,7 @@ async function load(cfg) {
   const rt = new THREE.WebGLRenderTarget(W, H, { type: THREE.FloatType, format: THREE.RGBAFormat,
     minFilter: THREE.NearestFilter, magFilter: THREE.NearestFilter, depthBuffer: true, samples: 0,
     colorSpace: THREE.NoColorSpace });
-  Object.assign(S, { cfg, renderer, scene, camera, materials, lights, rt, W, H, sphere, csm: null,
+  Object.assign(S, { cfg, renderer, scene, camera, meshes, materials, lights, rt, W, H, sphere, csm: null,
                      lit: new Float32Array(W * H * 4), shadowed: new Float32Array(W * H * 4) });
   const gl = renderer.getContext();
   return { revision: THREE.REVISION, webgl2: gl instanceof WebGL2RenderingContext,
@@ -154,14 +165,15 @@ function setShadow(light, p) {
 }
 
 function setupCsm(entry, p) {
-  if (S.csm) { S.csm.remove(); S.csm.dispose(); }
+  if (S.csm) S.csm.remove();
+  S.materials = lambert(S.meshes, S.cfg.type);
   const csm = new CSM({ camera: S.camera, parent: S.scene, cascades: p.cascades, maxFar: p.maxFar, mode: p.mode,
     shadowMapSize: p.shadowMapSize, shadowBias: p.shadowBias, lightDirection: new THREE.Vector3(...entry.direction)
       .normalize(), lightIntensity: entry.light.intensity, lightNear: p.lightNear, lightFar: p.lightFar,
     lightMargin: p.lightMargin });
   csm.fade = p.fade;
   for (const l of csm.lights) { l.color.copy(entry.light.color); l.shadow.normalBias = p.normalBias; }
-  for (const m of S.materials) { csm.setupMaterial(m); m.needsUpdate = true; }
+  for (const m of S.materials) csm.setupMaterial(m);
   csm.updateFrustums();
   S.csm = csm;
 }
@@ -201,9 +213,9 @@ function render(p) {
                           far: entry.light.shadow.camera.far }];
     maps.push(sm);
     out.push({ name: entry.name, vis: b64(v), above_one: bad });
-    if (S.csm) { S.csm.remove(); S.csm.dispose(); S.csm = null; }
+    if (S.csm) { S.csm.remove(); S.csm = null; }
   }
   return { lights: out, maps, ms: performance.now() - t0 };
 }
 
-window.shadowlab = { load, render, ready: true };
+window.shadowlab = { load, render, ready: true, S };
