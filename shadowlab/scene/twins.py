@@ -17,12 +17,40 @@ from .build import shape_dicts
 from .sdf_spec import build_objects
 
 
+#: the ``[[shapes]]`` types with an SDF twin (:func:`shadowlab.sdf.field.twin_of`); any other type (a mesh) has none
+TWIN_TYPES = ("rectangle", "disk", "cube", "sphere", "cylinder")
+
+
+def why_no_twin(shape_spec) -> str | None:
+    """Why one ``[[shapes]]`` entry has no SDF twin, None when it has one: meshes (any type but
+    :data:`TWIN_TYPES`), alpha-tested shapes (their holes are not a solid) and open cylinders
+    (``caps = false``). Read from the spec alone, so applicability is decided before any work."""
+    s = shape_spec
+    if s.type not in TWIN_TYPES:
+        return f"shape {s.name!r} is a {s.type} mesh"
+    if s.alpha_tested:
+        return f"shape {s.name!r} is alpha-tested"
+    if s.type == "cylinder" and not s.caps:
+        return f"shape {s.name!r} is an open cylinder (caps = false)"
+    return None
+
+
+def why_no_sdf(spec) -> str | None:
+    """Why a scene spec has no signed distance field (:func:`sdf_of_spec` would give None), None
+    when it has one; from the spec alone, nothing is built."""
+    for s in spec.shapes:
+        if why := why_no_twin(s):
+            return why
+    if not spec.shapes and not getattr(spec, "sdf", ()):
+        return "the scene has no shapes"
+    return None
+
+
 def twin_of_shape(shape_spec) -> SDF | None:
     """SDF twin of one ``[[shapes]]`` entry, built from the same Mitsuba dicts the scene loads
-    (:func:`shadowlab.scene.build.shape_dicts`), or None when it has none: meshes (ply / obj),
-    alpha-tested shapes (their holes are not a solid) and open cylinders (``caps = false``)."""
+    (:func:`shadowlab.scene.build.shape_dicts`), or None when it has none (:func:`why_no_twin`)."""
     s = shape_spec
-    if s.type in ("ply", "obj") or s.alpha_tested or (s.type == "cylinder" and not s.caps):
+    if why_no_twin(s):
         return None
     d = shape_dicts(s)[s.name]
     M = np.array(d["to_world"].matrix, dtype=np.float64)
@@ -32,15 +60,9 @@ def twin_of_shape(shape_spec) -> SDF | None:
 def sdf_of_spec(spec) -> SDF | None:
     """The SDF of a scene spec: Mitsuba twins of its ``[[shapes]]`` and its ``[[sdf]]`` objects,
     united; None if some shape has no twin (meshes, alpha-tested or open shapes)."""
-    parts = []
-    for s in spec.shapes:
-        t = twin_of_shape(s)
-        if t is None:
-            return None
-        parts.append(t)
-    parts += build_objects(getattr(spec, "sdf", ()))
-    if not parts:
+    if why_no_sdf(spec):
         return None
+    parts = [twin_of_shape(s) for s in spec.shapes] + list(build_objects(getattr(spec, "sdf", ())))
     return Union(*parts)
 
 

@@ -24,6 +24,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..errors import InputError
+from ..scene.twins import why_no_sdf
 
 #: the kinds of value a :class:`Param` holds (checked when a Param is made)
 KINDS = ("float", "int", "bool", "choice")
@@ -266,6 +267,17 @@ def needs_mitsuba_geometry(name: str, spec) -> str | None:
         return (f"{name}: the scene has SDF-only objects ([[sdf]]) that Mitsuba does not see, so shadow maps "
                 "(Mitsuba ray casts from the light) would miss them: use the SDF techniques (sdf_hard, sdf_quilez, "
                 "...) on it, or this technique on a scene with Mitsuba twins")
+    return None
+
+
+def needs_sdf(name: str, spec) -> str | None:
+    """The reason an SDF technique (sphere and cone tracing of the scene's signed distance field)
+    cannot render ``spec``: a shape without an SDF twin (a PLY/OBJ mesh, an alpha-tested or open
+    shape, :func:`shadowlab.scene.twins.why_no_sdf`); None when the scene has its SDF."""
+    if why := why_no_sdf(spec):
+        return (f"{name}: the scene has no signed distance field ({why}; meshes and alpha-tested shapes have no "
+                "SDF twin): use the shadow-map techniques on it, or this technique on a scene of rectangles, disks, "
+                "cubes, spheres and capped cylinders or with [[sdf]] objects (e.g. sdf_simple, contact)")
     return None
 
 

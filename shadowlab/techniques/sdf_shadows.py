@@ -59,7 +59,8 @@ from ..scene.lights import light_sphere
 from ..sdf import soft
 from ..sdf.trace import hard_visibility
 from . import _sdf_shading as sdf_shading
-from .base import LightResult, Param, Pooled, Technique, light_scale_param, param_table_markdown, register, scaled_size
+from .base import (LightResult, Param, Pooled, Technique, light_scale_param, needs_sdf, param_table_markdown, register,
+                   scaled_size)
 
 SOURCE = "[Bán 2019]"
 
@@ -128,6 +129,9 @@ class SDFTechnique(Technique):
 
     def light_visibility(self, frame, sdf, light, o, R0, values):  # pragma: no cover - interface
         raise NotImplementedError
+
+    def unsupported(self, spec) -> str | None:
+        return needs_sdf(self.name, spec)
 
     def prepare(self, frame, values, ctx):
         ctx.sdf = require_sdf(frame, self.name)
