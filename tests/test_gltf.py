@@ -408,3 +408,14 @@ def test_glb_json_is_what_the_engines_read(exported):
     doc = json.loads(raw[20: 20 + n])
     assert doc["extras"]["lights"] == m["lights"] and "conventions" in doc["extras"]["shadowlab"]
     assert doc["extensionsUsed"] == ["KHR_lights_punctual"]
+
+
+def test_a_gltf_scene_exports_to_mitsuba_too(exported, tmp_path, capsys):
+    """Every command takes a .glb: the Mitsuba export writes each glTF primitive as a world-space PLY
+    that scene.xml loads (export's own check loads both XML files and counts their shapes)."""
+    p, _ = exported("foliage")
+    rc, o, err = _main(["export", p, "--out", tmp_path / "m"], capsys)
+    assert rc == 0, err
+    scene = json.loads((tmp_path / "m" / "scene.json").read_text())
+    assert scene["scene"] == "foliage-gltf" and len(scene["files"]["source_meshes"]) == 5
+    assert 'filename" value="meshes/source/card0.ply' in (tmp_path / "m" / "scene.xml").read_text()

@@ -317,6 +317,9 @@ def _scene_dicts(sc, spp: int, mesh_files: dict | None, save_bitmap, source_mesh
             for key, v in sd.items():
                 if source_mesh is not None and v.get("type") in ("ply", "obj") and v.get("filename"):
                     v = {**v, "filename": source_mesh(s.name, v["type"], v["filename"])}
+                elif v.get("type") == "gltf":  # a glTF's primitive: its world-space triangles as a PLY
+                    v = {"type": "ply", "filename": source_mesh(s.name, "gltf", v), "bsdf": v["bsdf"],
+                         "face_normals": True}
                 d[key] = v
         else:
             d[s.name] = {"type": "ply", "filename": mesh_files[s.name], "bsdf": next(iter(sd.values()))["bsdf"]}
@@ -415,7 +418,15 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
         sources = {}  # the scene's PLY / OBJ file -> its copy (relative), one copy per file
 
         def source_mesh(owner, kind, path):
-            """Copy a mesh file the scene loads into meshes/source/ (scene.xml reads the copy)."""
+            """Copy a mesh file the scene loads into meshes/source/ (scene.xml reads the copy); a glTF
+            primitive (``kind`` "gltf", ``path`` its shape dict) is written there as a world-space PLY."""
+            if kind == "gltf":
+                rel = f"meshes/source/{owner}.ply"
+                (tmp / "meshes" / "source").mkdir(parents=True, exist_ok=True)
+                write_ply(tmp / rel, *triangulate(path, segments), comment=f"shape {owner}: glTF {path['filename']} "
+                          f"node {path['node']}, world space")
+                sources[f"gltf:{owner}"] = rel
+                return rel
             key = str(Path(path).resolve())
             if key not in sources:
                 rel = f"meshes/source/{owner}.{kind}"
