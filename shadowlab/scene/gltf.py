@@ -1,6 +1,6 @@
 """glTF 2.0 both ways: a loaded scene -> one ``.glb`` real-time engines load, and the glTF checks.
 
-Written with pygltflib [glTF 2.0] (the format's specification, and its ``KHR_lights_punctual``
+Written with pygltflib after [Khronos 2017] (the glTF 2.0 specification and its ``KHR_lights_punctual``
 extension for lights); checked with the Khronos glTF validator (:func:`validate_glb`). The file
 reads back as a scene through :mod:`shadowlab.scene.gltf_file` (``scene.load("x.glb")``), so an
 exported ``.glb`` round-trips (docs/exchange.md, "glTF").

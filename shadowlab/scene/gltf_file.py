@@ -1,4 +1,4 @@
-"""Reading a glTF 2.0 file (``.glb`` or ``.gltf``) as a scene [glTF 2.0].
+"""Reading a glTF 2.0 file (``.glb`` or ``.gltf``) as a scene [Khronos 2017].
 
 :func:`scene_document` turns the file into the document a scene TOML parses to (the same dict
 :func:`shadowlab.scene.spec.parse` validates), so a glTF goes through the one scene loader and every
