@@ -419,3 +419,36 @@ def test_a_gltf_scene_exports_to_mitsuba_too(exported, tmp_path, capsys):
     scene = json.loads((tmp_path / "m" / "scene.json").read_text())
     assert scene["scene"] == "foliage-gltf" and len(scene["files"]["source_meshes"]) == 5
     assert 'filename" value="meshes/source/card0.ply' in (tmp_path / "m" / "scene.xml").read_text()
+
+
+def test_a_gltf_shape_in_a_toml_scene(tmp_path, mitsuba_backend, capsys):
+    """``type = "gltf"`` takes one node's triangles into any scene, with the shape's own transform on top."""
+    from shadowlab.scene import load
+    from shadowlab.scene.mesh import scene_triangles
+    from scene_builder import floor, write_scene
+    _foreign(tmp_path / "room.glb")
+    lights = [{"name": "p", "kind": "point", "position": [0.0, 3.0, 0.0], "power": 10}]
+    cam = {"position": [0.0, 4.0, 6.0], "target": [0.0, 0.0, 0.0], "fov": 50}
+    shape = {"name": "quads", "type": "gltf", "filename": "room.glb", "node": "quads", "translate": [0.0, 0.5, 0.0]}
+    sc = load(str(write_scene(tmp_path / "s.toml", name="s", lights=lights, shapes=[floor(5.0), shape],
+                              resolution=(16, 16), camera=cam)))
+    tris, owner = scene_triangles(sc.spec)
+    mine = tris[owner == 1]
+    assert mine.shape == (4, 3, 3) and sorted(set(np.round(mine[..., 1].ravel(), 6))) == [0.5, 1.5]
+    assert sc.shape_names[:2] == ["floor", "quads"]
+    bad = dict(shape, node="nope")
+    p = write_scene(tmp_path / "bad.toml", name="bad", lights=lights, shapes=[bad], resolution=(16, 16), camera=cam)
+    rc, _, err = _main(["export", p, "--format", "gltf", "--out", tmp_path / "o"], capsys)
+    assert rc == 2 and "no node 'nope'" in err and "quads" in err
+
+
+def test_missing_validator_names_make_engines(tmp_path, monkeypatch, capsys, exported):
+    from shadowlab.errors import EnvironmentProblem
+    from shadowlab.scene import gltf
+    p, _ = exported("contact")
+    monkeypatch.setattr(gltf, "project_root", lambda: tmp_path)      # a checkout where `make engines` never ran
+    with pytest.raises(EnvironmentProblem, match="make engines"):
+        gltf.validate_glb(p)
+    assert gltf.EnvironmentProblem.exit_code == 3
+    rc, o, err = _main(["export", "contact", "--format", "gltf", "--out", tmp_path / "o", "-r", "16x16"], capsys)
+    assert rc == 0 and "not validated" in o and "make engines" in o and (tmp_path / "o" / "scene.glb").is_file()
