@@ -260,7 +260,8 @@ def test_round_trip_gives_the_same_truth_bits(name, exported, tmp_path, mitsuba_
 # -- a glTF from elsewhere ---------------------------------------------------------------------
 
 
-def _foreign(path, *, camera=True, lights=True, extra_required=None, mode=4, aspect=16 / 9):
+def _foreign(path, *, camera=True, lights=True, extra_required=None, mode=4, aspect=16 / 9, spot_deg=None,
+             ortho=False):
     """A glTF written without shadowlab: a floor quad and a raised quad, a perspective camera
     (yfov 50°) looking down at them, a KHR point light 3 m up."""
     P = np.array([[-2, 0, -2], [2, 0, -2], [2, 0, 2], [-2, 0, 2],
@@ -281,11 +282,17 @@ def _foreign(path, *, camera=True, lights=True, extra_required=None, mode=4, asp
     if camera:  # at (0, 4, 5), pitched 40° down (a rotation of −40° about x)
         g.cameras = [gl.Camera(type="perspective", perspective=gl.Perspective(yfov=math.radians(50), znear=0.05,
                                                                               aspectRatio=aspect))]
+        if ortho:
+            g.cameras = [gl.Camera(type="orthographic", orthographic=gl.Orthographic(xmag=2, ymag=2, znear=0.1,
+                                                                                    zfar=50))]
         g.nodes.append(gl.Node(name="cam", camera=0, translation=[0, 4, 5],
                                rotation=[math.sin(math.radians(-20)), 0, 0, math.cos(math.radians(-20))]))
     if lights:
         g.extensionsUsed = ["KHR_lights_punctual"]
-        g.extensions = {"KHR_lights_punctual": {"lights": [{"type": "point", "intensity": 20.0, "name": "bulb"}]}}
+        light = {"type": "point", "intensity": 20.0, "name": "bulb"}
+        if spot_deg is not None:
+            light = {"type": "spot", "intensity": 20.0, "spot": {"outerConeAngle": math.radians(spot_deg)}}
+        g.extensions = {"KHR_lights_punctual": {"lights": [light]}}
         g.nodes.append(gl.Node(name="bulb light", translation=[0.3, 3, 0.2],
                                extensions={"KHR_lights_punctual": {"light": 0}}))
     if extra_required:
@@ -371,7 +378,16 @@ def test_corrupt_or_unsupported_gltf_exits_2_naming_it(tmp_path, capsys):
     p = _foreign(tmp_path / "lines.glb", mode=1)
     rc, _, err = _main(["export", p, "--format", "gltf", "--out", tmp_path / "o"], capsys)
     assert rc == 2 and "mode LINES" in err and "TRIANGLES" in err
-    rc, _, err = _main(["export", tmp_path / "missing.glb", "--format", "gltf", "--out", tmp_path / "o"], capsys)
+    p = _foreign(tmp_path / "ortho.glb", ortho=True)
+    rc, _, err = _main(["export", p, "--format", "gltf", "--out", tmp_path / "o"], capsys)
+    assert rc == 2 and "is orthographic" in err and "perspective" in err
+    p = _foreign(tmp_path / "wide.glb", spot_deg=89)
+    rc, _, err = _main(["export", p, "--format", "gltf", "--out", tmp_path / "o"], capsys)
+    assert rc == 2 and "outer cone of 89.0°" in err and "wide.shadowlab.toml" in err
+    (tmp_path / "wide.shadowlab.toml").write_text('[[lights]]\nname = "bulb_light"\nangle = 80\n', encoding="utf-8")
+    rc, _, err = _main(["export", p, "--format", "gltf", "--out", tmp_path / "o"], capsys)
+    assert rc == 0, err
+    rc, _, err = _main(["export", tmp_path / "missing.glb", "--format", "gltf", "--out", tmp_path / "o2"], capsys)
     assert rc == 2 and "not found" in err
 
 

@@ -465,7 +465,9 @@ def _fov_x(cam: dict) -> dict:
     return cam
 
 
-def _lights(path, g, mats: dict) -> list:
+def _lights(path, g, mats: dict, fixed=frozenset()) -> list:
+    """The file's lights as ``[[lights]]`` tables; ``fixed``: names whose sidecar table sets the
+    cone (``angle``) or another ``kind``, so a spot cone shadowlab cannot take is not refused."""
     khr = ((g.extensions or {}).get("KHR_lights_punctual") or {}).get("lights") or []
     out, taken = [], set()
     for i, M in mats.items():
@@ -494,7 +496,7 @@ def _lights(path, g, mats: dict) -> list:
             t = {"name": name, "kind": "point", "position": pos.tolist(), "intensity": value}
         elif typ == "spot":
             outer = math.degrees(float((lt.get("spot") or {}).get("outerConeAngle", math.pi / 4)))
-            if not 1.0 <= outer <= 80.0:
+            if not 1.0 <= outer <= 80.0 and name not in fixed:
                 raise SceneError(f"{path}: spot light {name!r} has an outer cone of {outer:.1f}°; shadowlab's spot "
                                  f"lights take 1-80°: set angle in a [[lights]] table named {name!r} in "
                                  f"{sidecar_path(path).name}, or change the cone in the file")
@@ -588,7 +590,8 @@ def scene_document(path, *, light_keys: dict) -> dict:
                          f"to the file, or a [camera] table (position, target, fov, resolution) to "
                          f"{sidecar_path(p)}")
     doc["camera"] = _fov_x(cam)
-    from_file = _lights(p, g, mats)
+    fixed = {t.get("name") for t in side.get("lights", []) if "angle" in t or t.get("kind", "spot") != "spot"}
+    from_file = _lights(p, g, mats, fixed)
     named = {s.get("name") for s in side.get("lights", [])}
     delta = [t["name"] for t in from_file if t.get("_from_gltf") and t["name"] not in named]
     if delta:
