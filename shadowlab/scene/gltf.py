@@ -52,6 +52,7 @@ What glTF cannot say goes into ``extras`` (key ``shadowlab``), so nothing is los
   ``sphere`` and its ``to_world``: it is **not** a drawable mesh, engines must not draw it); the
   sun's angular diameter, the spot's cone;
 * the camera node: the camera table of the scene format and the exact matrices;
+* each mesh node: the shape's name and type, and ``casts_shadows`` (false: drawn, casts no shadow);
 * each material: the albedo, alpha cut-off and, for translucent casters, ``transmittance``,
   ``opacity`` and the per-crossing ``tau`` (glTF has no shadow-only transmission).
 """  # noqa: E501
@@ -359,7 +360,8 @@ def build_gltf(scene, *, resolution=None, segments: int = 64) -> tuple[gl.GLTF2,
         g.meshes.append(gl.Mesh(name=s.name, primitives=[prim]))
         g.nodes.append(gl.Node(name=s.name, mesh=len(g.meshes) - 1,
                                extras={EXTRAS_KEY: {"shape": s.name, "type": s.type, "triangles": int(len(F)),
-                                                    "vertices": int(len(P))}}))
+                                                    "vertices": int(len(P)),
+                                                    "casts_shadows": bool(getattr(s, "casts_shadows", True))}}))
         roots.append(len(g.nodes) - 1)
 
     cam = spec.camera

@@ -392,6 +392,8 @@ def _shapes(path, g, blob, mats: dict) -> list:
             if len(prims) > 1:
                 t["primitive"] = k
             t.update(_material(path, g, blob, pr.material, name))
+            if ex.get("casts_shadows") is False:  # drawn but casting no shadow (shadowlab's own export)
+                t["casts_shadows"] = False
             if t.pop("_invisible", False):
                 continue
             out.append(t)
