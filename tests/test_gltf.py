@@ -165,6 +165,10 @@ def test_lights_have_the_closed_form_intensities(tmp_path, mitsuba_backend):
     assert len(g.meshes) == 2 and all(n.mesh is None or n.name in ("floor", "can") for n in g.nodes)
     floor = next(mt for mt in g.materials if mt.name == "floor").extras["shadowlab"]
     assert floor["tau"] == [0.75, 0.625, 1.0]
+    # every kind reads back as it was: the lights' tables, the translucent caster
+    back = load(str(tmp_path / "kinds.glb")).spec
+    assert back.lights == sc.spec.lights
+    assert [(x.transmittance, x.opacity) for x in back.shapes] == [(s.transmittance, s.opacity) for s in sc.spec.shapes]
 
 
 def test_alpha_tested_shape_is_mask_with_the_truths_opacity(exported, tmp_path, mitsuba_backend):
