@@ -19,13 +19,18 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
+import struct
 import subprocess
+import threading
+import time
 import uuid
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Sequence
 
 from distributed import Client, LocalCluster, as_completed
+from distributed.comm.addressing import parse_host_port
 from tqdm import tqdm
 
 from .. import backend
@@ -39,7 +44,12 @@ SCHEDULER_ENV = "SHADOWLAB_SCHEDULER"
 PRELOAD = str(Path(__file__).with_name("preload.py"))
 #: address schemes of Dask's communication layer
 SCHEMES = ("tcp", "tls", "inproc", "ucx", "ws", "wss")
+#: seconds to reach a scheduler and hear its handshake: ``--scheduler`` exits 3 within them
 CONNECT_TIMEOUT_S = 10
+#: seconds a scheduler has, once connected, to send its handshake (a real one sends it at once)
+HANDSHAKE_TIMEOUT_S = 5
+#: seconds to wait for the first worker of a scheduler that has none yet
+WORKERS_TIMEOUT_S = 30
 
 
 def run_id() -> str:
@@ -174,12 +184,112 @@ def open_executor(workers: int | None = None, scheduler: str | None = None):
         ex.close()
 
 
-def _connect(address: str) -> DaskExecutor:
+def _unreachable(address: str, why: str) -> EnvironmentProblem:
+    return EnvironmentProblem(f"cannot reach the Dask scheduler at {address} ({why}); start one there (`dask "
+                              f"scheduler`) or fix --scheduler / ${SCHEDULER_ENV}")
+
+
+def _recv_some(sock: socket.socket, n: int, deadline: float) -> bytes:
+    """Up to ``n`` bytes, as many as arrive before ``deadline`` (or the peer closes)."""
+    data = b""
+    while len(data) < n:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            break
+        sock.settimeout(left)
+        try:
+            chunk = sock.recv(n - len(data))
+        except (socket.timeout, TimeoutError):
+            break
+        if not chunk:
+            break
+        data += chunk
+    return data
+
+
+def is_dask_greeting(head: bytes) -> bool:
+    """Whether the first 16 bytes a server sent open a Dask TCP message: its total size (uint64,
+    little-endian) then its frame count, both small for the handshake a scheduler sends on accept.
+
+    >>> is_dask_greeting(struct.pack("<QQ", 120, 1)), is_dask_greeting(b"HTTP/1.1 400 Bad")
+    (True, False)
+    """
+    if len(head) < 16:
+        return False
+    total, frames = struct.unpack("<QQ", head[:16])
+    return 0 < frames <= 64 and 8 * (frames + 1) <= total <= 1 << 20
+
+
+def probe_tcp(address: str, timeout: float = CONNECT_TIMEOUT_S) -> None:
+    """Check within ``timeout`` seconds that a Dask scheduler listens at the ``tcp://`` ``address``:
+    it must accept the connection and send the handshake Dask's comm layer sends on accept. A
+    closed port, a server that accepts and stays silent, and another service (HTTP, SSH) each
+    raise :class:`EnvironmentProblem` (exit 3) saying which. Dask's own client waits forever on a
+    silent server and reads another service's bytes as a frame size (an "out of memory" of
+    exabytes), so this runs first."""
+    t0 = time.monotonic()
     try:
-        client = Client(address, timeout=CONNECT_TIMEOUT_S)
+        host, port = parse_host_port(address.partition("://")[2], 8786)
+        sock = socket.create_connection((host, port), timeout=timeout)
+    except (OSError, ValueError) as e:
+        raise _unreachable(address, f"{type(e).__name__}: {e}") from None
+    wait = min(HANDSHAKE_TIMEOUT_S, max(timeout - (time.monotonic() - t0), 0.5))
+    with sock:
+        head = _recv_some(sock, 16, time.monotonic() + wait)
+    if not head:
+        raise _unreachable(address, f"a program accepts connections on that port but sent no Dask handshake within "
+                                    f"{wait:g} s: a stalled scheduler, or another service")
+    if not is_dask_greeting(head):
+        raise EnvironmentProblem(f"the program listening at {address} is not a Dask scheduler (it answered "
+                                 f"{head[:16]!r}); give the address of a running `dask scheduler` with --scheduler "
+                                 f"/ ${SCHEDULER_ENV}, or stop the other program using that port")
+
+
+def _within(fn: Callable, seconds: float, on_timeout: Callable[[], BaseException]):
+    """``fn()`` in a daemon thread, given at most ``seconds``: its result, its exception, or
+    ``on_timeout()`` raised when it has not returned by then (the thread is left behind)."""
+    box: dict = {}
+
+    def run():
+        try:
+            box["value"] = fn()
+        except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
+            box["error"] = e
+
+    t = threading.Thread(target=run, name="shadowlab-connect", daemon=True)
+    t.start()
+    t.join(max(seconds, 0.1))
+    if t.is_alive():
+        raise on_timeout()
+    if "error" in box:
+        raise box["error"]
+    return box["value"]
+
+
+def _connect(address: str) -> DaskExecutor:
+    """A client of the scheduler at ``address``: exit 3 within :data:`CONNECT_TIMEOUT_S` if it
+    cannot be reached or does not speak Dask, or if it has no worker after :data:`WORKERS_TIMEOUT_S`."""
+    t0 = time.monotonic()
+    if address.startswith("tcp://"):
+        probe_tcp(address, CONNECT_TIMEOUT_S)
+    left = CONNECT_TIMEOUT_S - (time.monotonic() - t0)
+    try:
+        client = _within(lambda: Client(address, timeout=max(left, 1.0)), left + 1.0,
+                         lambda: _unreachable(address, f"no Dask handshake within {CONNECT_TIMEOUT_S:g} s"))
+    except EnvironmentProblem:
+        raise
     except (OSError, TimeoutError) as e:
-        raise EnvironmentProblem(f"cannot reach the Dask scheduler at {address} ({type(e).__name__}: {e}); start "
-                                 f"one there (`dask scheduler`) or fix --scheduler / ${SCHEDULER_ENV}") from None
+        raise _unreachable(address, f"{type(e).__name__}: {e}") from None
+    except Exception as e:  # noqa: BLE001 - e.g. MemoryError: another protocol's bytes read as a frame size
+        raise _unreachable(address, f"it does not answer as a Dask scheduler ({type(e).__name__})") from None
+    try:
+        _within(lambda: client.wait_for_workers(1, timeout=WORKERS_TIMEOUT_S), WORKERS_TIMEOUT_S + 5.0,
+                lambda: TimeoutError())
+    except (OSError, TimeoutError):
+        client.close(timeout=2)
+        raise EnvironmentProblem(f"the Dask scheduler at {address} has no workers (none joined within "
+                                 f"{WORKERS_TIMEOUT_S:g} s), so no job could run; start some (`dask worker "
+                                 f"{address}`)") from None
     return DaskExecutor(client, address=address, threads=None)
 
 
