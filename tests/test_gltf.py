@@ -242,10 +242,11 @@ def test_round_trip_gives_the_same_truth_bits(name, exported, tmp_path, mitsuba_
     fixed point: export(import(export(S))) holds the same binary chunk (meshes, textures) and its
     import the same truth bits."""
     from shadowlab.scene import load
-    from shadowlab.scene.gltf import write_glb
+    from shadowlab.scene.gltf import read_gltf, write_glb
     S = load(name, resolution=RES)
     p, _ = exported(name)
     G = load(str(p))
+    assert read_gltf(p) == G.spec
     assert G.spec.lights == S.spec.lights and G.spec.camera == S.spec.camera
     assert [(s.name, s.albedo, s.two_sided, s.alpha_cutoff) for s in G.spec.shapes] == \
            [(s.name, s.albedo, s.two_sided, s.alpha_cutoff) for s in S.spec.shapes]

@@ -76,11 +76,12 @@ from ..io.png import encode_png, write_bytes_atomic
 from . import lights as lights_mod
 from .build import sensor_dict
 from .mesh import matrix_of, sagitta, shape_mesh
-from .spec import LIGHT_KEYS
+from .gltf_file import GLTF_SUFFIXES
+from .spec import LIGHT_KEYS, load_spec
 from .textures import opacity_mask, read_alpha
 
-__all__ = ["write_glb", "build_gltf", "validate_glb", "InvalidExport", "report_lines", "gltf_matrices", "khr_light",
-           "light_table", "camera_table", "FORMAT", "FORMAT_VERSION", "EXTRAS_KEY"]
+__all__ = ["write_glb", "read_gltf", "build_gltf", "validate_glb", "InvalidExport", "report_lines", "gltf_matrices",
+           "khr_light", "light_table", "camera_table", "FORMAT", "FORMAT_VERSION", "EXTRAS_KEY"]
 
 FORMAT, FORMAT_VERSION = "shadowlab-gltf", 1
 #: the key of shadowlab's own data in every ``extras`` object
@@ -420,6 +421,17 @@ def write_glb(scene, path, *, resolution=None, segments: int = 64) -> dict:
     g, manifest = build_gltf(scene, resolution=resolution, segments=segments)
     write_bytes_atomic(Path(path), b"".join(g.save_to_bytes()))
     return manifest
+
+
+def read_gltf(path, *, resolution=None):
+    """The :class:`~shadowlab.scene.spec.SceneSpec` of a ``.glb`` / ``.gltf`` file and its
+    ``NAME.shadowlab.toml`` sidecar (what ``scene.load(path)`` builds; :mod:`.gltf_file` says what
+    comes from where), optionally at another resolution (W, H)."""
+    p = Path(path)
+    if p.suffix.lower() not in GLTF_SUFFIXES:
+        raise InputError(f"{p}: not a glTF file name; expected a {' or '.join(GLTF_SUFFIXES)} file")
+    spec = load_spec(p)
+    return spec.with_resolution(*resolution) if resolution else spec
 
 
 # -- validation -------------------------------------------------------------------------------
