@@ -467,7 +467,7 @@ def test_missing_validator_names_make_engines(tmp_path, monkeypatch, capsys, exp
     from shadowlab.errors import EnvironmentProblem
     from shadowlab.scene import gltf
     p, _ = exported("contact")
-    monkeypatch.setattr(gltf, "project_root", lambda: tmp_path)      # a checkout where `make engines` never ran
+    monkeypatch.setenv("SHADOWLAB_NODE_MODULES", str(tmp_path / "node_modules"))   # `make engines` never ran
     with pytest.raises(EnvironmentProblem, match="make engines"):
         gltf.validate_glb(p)
     assert gltf.EnvironmentProblem.exit_code == 3

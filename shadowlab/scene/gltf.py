@@ -452,13 +452,20 @@ def project_root() -> Path:
     return Path(__file__).resolve().parents[2]
 
 
+def node_modules() -> Path:
+    """``$SHADOWLAB_NODE_MODULES``, else the checkout's ``node_modules`` (where ``make engines``
+    installs the pinned npm packages)."""
+    env = os.environ.get("SHADOWLAB_NODE_MODULES")
+    return Path(env) if env else project_root() / "node_modules"
+
+
 def validator_path() -> Path:
     """The installed Khronos validator package; EnvironmentProblem (exit 3) naming ``make engines``
     when node or the package is missing."""
     if shutil.which("node") is None:
         raise EnvironmentProblem("node (Node.js) not found; the glTF validator runs on it. Install Node.js >= 18 "
                                  "and npm (sudo apt-get install nodejs npm), then run `make engines`")
-    p = project_root() / "node_modules" / VALIDATOR_PACKAGE
+    p = node_modules() / VALIDATOR_PACKAGE
     if not (p / "package.json").is_file():
         raise EnvironmentProblem(f"the Khronos glTF validator (npm package {VALIDATOR_PACKAGE}) is not installed in "
                                  f"{p.parent}; run `make engines` (npm ci from the committed package-lock.json)")
