@@ -17,6 +17,7 @@ What must hold, each tested here:
   file, an unsupported feature; shadowlab's own invalid glb exits 4 and leaves ``--out`` as it was.
 """
 
+import base64
 import json
 import math
 import struct
@@ -473,3 +474,23 @@ def test_missing_validator_names_make_engines(tmp_path, monkeypatch, capsys, exp
     assert gltf.EnvironmentProblem.exit_code == 3
     rc, o, err = _main(["export", "contact", "--format", "gltf", "--out", tmp_path / "o", "-r", "16x16"], capsys)
     assert rc == 0 and "not validated" in o and "make engines" in o and (tmp_path / "o" / "scene.glb").is_file()
+
+
+def test_a_gltf_with_external_and_embedded_buffers_loads_as_the_glb(tmp_path, mitsuba_backend, capsys):
+    """.gltf (JSON) with its buffer in a .bin beside it, or as a data URI, gives the .glb's triangles."""
+    from shadowlab.scene import load
+    from shadowlab.scene.mesh import scene_triangles
+    glb = _foreign(tmp_path / "room.glb")
+    want = scene_triangles(load(str(glb)).spec)[0]
+    blob = gl.GLTF2().load(str(glb)).binary_blob()
+    (tmp_path / "ext.bin").write_bytes(blob)
+    for uri, name in (("ext.bin", "ext.gltf"),
+                      ("data:application/octet-stream;base64," + base64.b64encode(blob).decode(), "uri.gltf")):
+        doc = json.loads(gl.GLTF2().load(str(glb)).to_json())
+        doc["buffers"][0]["uri"] = uri
+        (tmp_path / name).write_text(json.dumps(doc), encoding="utf-8")
+        got = scene_triangles(load(str(tmp_path / name)).spec)[0]
+        assert np.array_equal(got, want), name
+    (tmp_path / "ext.bin").unlink()
+    rc, _, err = _main(["export", tmp_path / "ext.gltf", "--format", "gltf", "--out", tmp_path / "o"], capsys)
+    assert rc == 2 and "ext.bin" in err and "beside the .gltf" in err
