@@ -342,6 +342,10 @@ def test_foreign_gltf_loads_with_stated_defaults_and_a_sidecar(tmp_path, mitsuba
     assert s2.name == "room" and s2.camera.resolution == (64, 36) and s2.camera.fov == pytest.approx(cam.fov)
     (l2,) = s2.lights
     assert (l2.kind, l2.radius, l2.power, l2.intensity, l2.position) == ("sphere", 0.1, 200.0, None, (0.3, 3.0, 0.2))
+    # a misspelt key of the sidecar: exit 2 naming the key, its fix and the sidecar
+    (tmp_path / "room.shadowlab.toml").write_text('[[lights]]\nname = "bulb_light"\nradus = 0.1\n', encoding="utf-8")
+    rc, _, err = _main(["export", p, "--format", "gltf", "--out", tmp_path / "o"], capsys)
+    assert rc == 2 and "radus" in err and "did you mean 'radius'" in err and "room.shadowlab.toml" in err
 
 
 # -- bad input ---------------------------------------------------------------------------------

@@ -44,7 +44,7 @@ else:  # pragma: no cover
 
 from ..errors import SceneError
 from ._reader import _Reader, rotations
-from .gltf_file import GLTF_SUFFIXES, scene_document
+from .gltf_file import GLTF_SUFFIXES, scene_document, sidecar_path
 from .sdf_spec import parse_sdf_tables
 from .textures import AlphaTextureError, read_alpha
 
@@ -176,6 +176,7 @@ class LightSpec:
     depth_bits: int = 32
     near: float | None = None
     range: float | None = None   # point / spot: influence radius (m), windowed falloff; None = unbounded
+    casts_shadows: bool = False  # the emitter's own panel blocks the other lights (engines: no)
 
     @property
     def physical_size(self) -> float:
@@ -191,6 +192,13 @@ class LightSpec:
     @property
     def is_delta(self) -> bool:
         return self.physical_size == 0.0
+
+    @property
+    def has_panel(self) -> bool:
+        """The light is a surface in the scene that could block another light: an area light
+        (rect, disk, sphere; spot and point of radius > 0). A delta light has none, and a
+        directional light's emitter is a disk far outside the scene, on no other light's path."""
+        return not self.is_delta and self.kind != "directional"
 
 
 @dataclass(frozen=True)
@@ -214,6 +222,7 @@ class ShapeSpec:
     alpha_cutoff: float = 0.5         # texels with alpha < cutoff are transparent (discarded)
     transmittance: tuple | None = None  # translucent caster: RGB fraction of light let through, in [0, 1]
     opacity: float = 1.0                # share of the surface that filters (the rest lets all light through)
+    casts_shadows: bool = True          # false: seen and lit, but never blocks a light (shadow rays, light views)
 
     @property
     def alpha_tested(self) -> bool:
@@ -298,9 +307,13 @@ class SceneSpec:
             d.pop("truth_allocation")
         if not d["sdf"]:  # absent unless used: scenes without [[sdf]] hash as before the key existed
             d.pop("sdf")
-        for l in d["lights"]:  # absent unless used: lights without a range hash as before the key existed
+        for l, spec in zip(d["lights"], self.lights):  # absent unless used: lights without a range hash as before
             if l["range"] is None:
                 l.pop("range")
+            # casts_shadows: hashed only where it changes the truth, i.e. a light's panel that could block another
+            # light; a panel that casts is what every scene did before the key existed, so it hashes as then
+            if l["casts_shadows"] or not spec.has_panel or len(self.lights) < 2:
+                l.pop("casts_shadows")
         if d["path"] is None:  # absent unless used: a scene without a camera path hashes as before paths existed
             d.pop("path")
             d.pop("frame")
@@ -326,6 +339,8 @@ class SceneSpec:
             tr, op = s.pop("transmittance"), s.pop("opacity")
             if tr is not None:
                 s["transmittance"], s["opacity"] = tr, op
+            if s["casts_shadows"]:  # absent unless false: shapes hash as before the key existed
+                s.pop("casts_shadows")
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()
 
     def light(self, name: str) -> LightSpec:
@@ -358,7 +373,7 @@ CAMERA_KEYS = ("position", "target", "up", "fov", "resolution", "near", "far", "
 PATH_KEYS = ("frames", "interpolation", "keys", "cameras")
 PATH_KEY_KEYS = ("frame", "position", "target", "fov", "up")
 PATH_CAMERA_KEYS = ("position", "target", "fov", "up")
-_LIGHT_COMMON = ("name", "kind", "color", "power", "shadow_map", "depth_bits")
+_LIGHT_COMMON = ("name", "kind", "color", "power", "shadow_map", "depth_bits", "casts_shadows")
 #: the keys each light kind takes (README, "Scene format"); a key of another kind is refused
 LIGHT_KEYS = {
     "rect": _LIGHT_COMMON + ("position", "target", "up", "size", "radiance", "near"),
@@ -371,7 +386,7 @@ LIGHT_KEYS = {
 _LIGHT_SIZE_KEY = {"rect": "size", "disk": "radius", "sphere": "radius", "spot": "radius", "point": "radius",
                    "directional": "angular_diameter"}
 _SHAPE_COMMON = ("name", "type", "albedo", "translate", "rotate", "scale", "two_sided", "alpha_texture",
-                 "alpha_cutoff", "transmittance", "opacity")
+                 "alpha_cutoff", "transmittance", "opacity", "casts_shadows")
 #: the keys each shape type takes; a key of another type (``radius`` on a cube) is refused
 SHAPE_KEYS = {
     "rectangle": _SHAPE_COMMON, "disk": _SHAPE_COMMON, "cube": _SHAPE_COMMON,
@@ -574,7 +589,13 @@ def _light(path: str, i: int, lt, names: set) -> LightSpec:
             if kw["radius"] > 0 and r.has("intensity"):
                 r.fail("intensity", f"no intensity on a {kind} light of radius {kw['radius']:g} (an area light): "
                        "give radiance or power, or radius = 0 for a delta light", kw["intensity"])
-    return LightSpec(**kw)
+    light = LightSpec(**kw)
+    if r.bool("casts_shadows", False):
+        if not light.has_panel:
+            r.fail("casts_shadows", f"false or no key: a {'directional' if kind == 'directional' else 'delta'} "
+                   "light has no surface in the scene that could block another light", True)
+        light = replace(light, casts_shadows=True)
+    return light
 
 
 def _shape(path: str, i: int, st, names: set, snames: set, base: Path) -> ShapeSpec:
@@ -596,7 +617,7 @@ def _shape(path: str, i: int, st, names: set, snames: set, base: Path) -> ShapeS
     kw = dict(name=sname, type=typ, albedo=alb, translate=r.vec("translate", default=(0, 0, 0)),
               rotate=tuple(tuple(float(x) for x in q) for q in rot),
               scale=r.vec("scale", default=(1, 1, 1), positive=True),
-              two_sided=r.bool("two_sided", True))
+              two_sided=r.bool("two_sided", True), casts_shadows=r.bool("casts_shadows", True))
     if typ == "sphere":
         kw["center"] = r.vec("center", default=(0, 0, 0))
         kw["radius"] = r.num("radius", default=1.0, lo=1e-6)
@@ -680,6 +701,11 @@ def parse(data: dict, path: str = "<scene>") -> SceneSpec:
         if meshy:
             top.fail("sdf", "no [[sdf]] objects in a scene with meshes or alpha-tested shapes (they have no "
                      f"signed distance field): {', '.join(meshy)}", None)
+        switched = [s.name for s in shapes if not s.casts_shadows] + [l.name for l in lights if l.casts_shadows]
+        if switched:
+            top.fail("sdf", "no [[sdf]] objects in a scene with casts_shadows switched from its default (the cone "
+                     "traced G-buffer and truth use one signed distance field for what is seen and what casts): "
+                     f"{', '.join(switched)}", None)
     cam_path = _camera_path(path, data["camera"], camera)
     spec = SceneSpec(name=name, camera=camera, lights=tuple(lights), shapes=tuple(shapes),
                      description=top.str("description", default=""), source=str(path), sdf=sdf, path=cam_path,
@@ -710,7 +736,14 @@ def load_spec(path) -> SceneSpec:
         raise SceneError(f"{p}: scene file not found; give a path to a .toml scene or the name of a "
                          "built-in scene (`shadowlab scenes` lists them)")
     if p.suffix.lower() in GLTF_SUFFIXES and p.is_file():
-        return parse(scene_document(p, light_keys=LIGHT_KEYS), str(p))
+        doc = scene_document(p, light_keys=LIGHT_KEYS)
+        try:
+            return parse(doc, str(p))
+        except SceneError as e:
+            side = sidecar_path(p)
+            if side.is_file():  # the key may come from the sidecar: say where to look
+                raise SceneError(f"{e} (the scene of {p.name} with its sidecar {side}, where the key may be)") from None
+            raise
     if p.is_dir():
         inside = sorted(q.name for q in p.glob("*.toml"))[:5]
         raise SceneError(f"{p}: is a directory, not a scene file; give a .toml scene file"
