@@ -1,9 +1,9 @@
 """The ``shadowlab`` command line (typer).
 
-Exit codes (the README's exit-code paragraph; docs/ARCHITECTURE.md, Conventions): 0 ok, 1 a gate
-failed, 2 bad input or usage, 3 environment (no usable libLLVM, a file that cannot be written,
-out of memory), 4 internal error (a bug: one "please report" line; the traceback with
-``SHADOWLAB_DEBUG=1``), 130 SIGINT (Ctrl-C), 143 SIGTERM. A signal stops the command with one
+Exit codes (docs/cli.md; docs/ARCHITECTURE.md, Conventions): 0 ok, 1 a gate failed, 2 bad input
+or usage, 3 environment (no usable libLLVM, a file that cannot be written, out of memory), 4
+internal error (a bug: one "please report" line; the traceback with ``SHADOWLAB_DEBUG=1``), 130
+SIGINT (Ctrl-C), 143 SIGTERM, 141 the reader of stdout went away (``| head``). A signal stops the command with one
 line on stderr; the atomic writers remove what they had begun, so nothing partial is left.
 
 Start-up: registering the commands imports only typer and the standard library; each command
@@ -20,12 +20,26 @@ import errno
 import math
 import os
 import signal
+import shutil
 import sys
 import traceback
 from pathlib import Path
 from typing import List, Optional
 
-import typer
+
+
+def _startup_signal(signum, frame):
+    """SIGINT / SIGTERM while the command is still importing its modules: nothing has been done
+    yet, so one line and the exit code, no traceback (:func:`main` installs the real handlers)."""
+    os.write(2, f"interrupted by {signal.Signals(signum).name} while starting; nothing was done\n".encode())
+    os._exit(128 + signum)
+
+
+if __name__ == "__main__" or os.path.basename(sys.argv[0] or "") == "shadowlab":
+    for _s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(_s, _startup_signal)
+
+import typer  # noqa: E402 - after the start-up handler: importing typer is most of start-up
 
 from .errors import INTERNAL_ERROR, GateFailure, InputError, Interrupted, ShadowlabError
 
@@ -225,16 +239,21 @@ def references():
                    + "".join(f"\n{'':18s} {p}" for p in r["status"]))
 
 
+def _columns() -> int:
+    """The terminal's width in characters (100 when it has none, e.g. in a pipe)."""
+    return shutil.get_terminal_size((100, 24)).columns
+
+
 def _compare(scene, techs, sets, out, resolution, variant, preset=None, force=False, frame=None, frames=None):
     from .pipeline import compare as cmp
     from .pipeline import parse_resolution
-    from .report import summary_table
     from .report.frames import frames_summary
+    from .report.tables import terminal_table
     _init(variant)
     run = cmp(scene, techs, sets, Path(out) if out else None, parse_resolution(resolution),
               params=preset.values if preset else None, preset=preset.info() if preset else None, force=force,
               progress=_progress(), frame=frame, frames=frames)
-    typer.echo(frames_summary(run) if frames else summary_table(run))
+    typer.echo(frames_summary(run) if frames else terminal_table(run, width=_columns()))
     if out:
         typer.echo(f"report: {Path(out) / 'index.html'}")
     return run
@@ -474,7 +493,7 @@ def ingest(
     from .exchange.ingest import default_out
     from .exchange.ingest import ingest as run_ingest
     from .pipeline import parse_resolution
-    from .report import summary_table
+    from .report.tables import terminal_table
     _init(variant)
     out = out or str(default_out(scene, image))
     names = [x for x in label if "=" not in x]
@@ -484,7 +503,7 @@ def ingest(
     run = run_ingest(scene, image, channels=channel, shaded=shaded, layer=layer, against=against,
                      resolution=parse_resolution(resolution), out=Path(out), gate=gate, force=force,
                      label=names[0] if names else None, labels=[x for x in label if "=" in x])
-    typer.echo(summary_table(run))
+    typer.echo(terminal_table(run, width=_columns()))
     for light, d in next(iter(run["techniques"].values()))["per_light"].items():
         typer.echo(f"{light}: " + ", ".join(f"{k} {v:.4g}" for k, v in d.items()))
     for note in run["ingest"]["notes"]:
@@ -575,6 +594,32 @@ def _environment_oserror(e: OSError) -> str | None:
     return None
 
 
+#: exit code when the reader of our output went away (`shadowlab techniques | head -1`): 128 + SIGPIPE, as a
+#: program killed by SIGPIPE exits in a shell
+PIPE_CLOSED = 128 + 13
+
+
+def _broken_pipe(e) -> bool:
+    return isinstance(e, BrokenPipeError) or isinstance(e, OSError) and e.errno == errno.EPIPE
+
+
+def _pipe_closed() -> int:
+    """The reader closed our stdout: stop quietly. As Python's docs advise (signal module, "Note on
+    SIGPIPE"), stdout is pointed at /dev/null so that the flush at exit raises nothing."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+    return PIPE_CLOSED
+
+
+def _write_error(e: BaseException):
+    """The exit-2/3 error of an OS error that is a path's or the machine's (io.outdir.write_error), or None."""
+    from .io.outdir import write_error
+    return write_error(getattr(e, "filename", None) or "a file", e)
+
+
 def _internal_error(e: BaseException) -> int:
     typer.echo(f"internal error: {type(e).__name__}: {e}. This is a shadowlab bug; please report it with the "
                f"command line and its input files (set {DEBUG_ENV}=1 to print the traceback).", err=True)
@@ -615,14 +660,22 @@ def _exit_code(e: BaseException) -> int:
         typer.echo("interrupted; nothing stored was changed", err=True)
         return 130
     if isinstance(e, SystemExit):
+        if _broken_pipe(e.__context__):  # click caught the EPIPE and exits 1, which means "a gate failed"
+            return _pipe_closed()
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
     if isinstance(e, MemoryError):
         typer.echo("error: out of memory; use a smaller --resolution, smaller shadow maps (shadow_map) or fewer "
                    "techniques at once", err=True)
         return 3
+    if _broken_pipe(e):
+        return _pipe_closed()
     if isinstance(e, OSError) and _environment_oserror(e) is not None:
         typer.echo(f"error: {_environment_oserror(e)}", err=True)
         return 3
+    if isinstance(e, (OSError, RuntimeError)) and _write_error(e) is not None:  # e.g. EXDEV, /proc: ENOENT
+        err = _write_error(e)
+        typer.echo(f"error: {err}", err=True)
+        return err.exit_code
     if isinstance(e, OSError) and e.errno in (errno.ENAMETOOLONG, errno.ELOOP, errno.ENOTDIR, errno.EISDIR):
         typer.echo(f"error: bad path {e.filename or ''}: {e.strerror}; give a shorter path or one whose folders "
                    "are directories", err=True)
@@ -647,7 +700,11 @@ def main(argv=None) -> int:
     """Entry point: run the typer app and map errors and signals to exit codes."""
     old = _install_signal_handlers()
     try:
-        return _run(argv)
+        rc = _run(argv)
+        sys.stdout.flush()  # here, not at exit: a reader that went away is seen now (exit PIPE_CLOSED)
+        return rc
+    except BrokenPipeError:
+        return _pipe_closed()
     except Interrupted as e:  # arrived between the command's end and the exit
         return _interrupted(e.signum)
     finally:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import math
 
 import drjit as dr
@@ -259,7 +260,14 @@ def test_compare_frames_report(stored, tmp_path):
     assert m["per_frame"]["1"]["hard"]["metrics"]["rmse"] == sub["techniques"]["hard"]["metrics"]["rmse"]
     md = (out / "summary.md").read_text()
     assert "| hard |" in md and "Temporal stability" in md and "frame 2" in md
-    assert "frame_0002/index.html" in (out / "index.html").read_text()
+    page = (out / "index.html").read_text()
+    assert "frame_0002/index.html" in page
+    # styled like a frame's report, with its charts and every thumbnail it shows present on disk
+    measured = [k for k in ("rmse", "rmse_penumbra", "vis_rmse")
+                if any(m["per_frame"][f]["hard"]["metrics"].get(k) is not None for f in m["per_frame"])]
+    assert "table.metrics" in page and page.count('<svg class="chart"') == len(measured) + 1   # + the shimmer
+    thumbs = re.findall(r'<img class="im thumb" src="([^"]+)"', page)
+    assert len(thumbs) == 3 * 2 and all((out / t).is_file() for t in thumbs), thumbs
     one = pipeline.compare(str(p), ["hard"], base=base, frame=2, progress=False)
     assert one["frame"] == 2
     for k in ("rmse", "vis_rmse", "mae"):

@@ -102,7 +102,8 @@ def test_budget_semantics_and_empty_regions():
     assert [c.passed for c in r.checks] == [True, False, True]
     assert r.check("budget.rmse").value == pytest.approx(0.1)
     assert "n/a" in r.check("budget.rmse_penumbra").text  # all lit: no penumbra to measure
-    assert r.lines()[0] == "PASS  b  budget.rmse  0.1 <= 0.2"
+    assert r.lines()[0] == "PASS  b  budget.rmse  0.1 <= budget 0.2"
+    assert r.lines()[1] == "FAIL  b  budget.mae  0.1 > budget 0.05"      # what failed, not the requirement
     img = np.full((16, 16, 3), 0.5)
     assert check(img, img, {"budget": {"psnr": 40, "ssim": 0.99}}).passed  # higher-is-better: >=
     assert not check(img * 0.5, img, {"budget": {"ssim": 0.99}}).passed

@@ -141,11 +141,11 @@ def test_build_report(tmp_path):
     html = (out / "index.html").read_text()
     srcs = set(re.findall(r'src="img/([^"]+)"', html))
     assert srcs == set(pngs)
-    assert "contact" in html and "64×64" in html and "256 spp" in html and "image-rendering: pixelated" in html
+    assert "contact" in html and "64×64" in html and "256 shadow rays" in html and "image-rendering: pixelated" in html
 
     # summary.md: reference line, one row per technique, 4 significant digits, best in bold
     md = (out / "summary.md").read_text()
-    assert "Reference: 256 spp, max standard error 0.004" in md
+    assert "Reference: 256 shadow rays per pixel and light (mean; " in md and "max standard error 0.004" in md
     rows = [ln for ln in md.splitlines() if ln.startswith("| pcf") or ln.startswith("| pcss")]
     assert len(rows) == 2
     assert "**0.02**" in rows[0] and "**30**" in rows[0]  # lowest rmse, highest psnr
@@ -219,6 +219,28 @@ def test_metrics_are_split_into_key_columns_and_the_rest(tmp_path):
     assert key == ["technique", "rmse", "rmse_penumbra", "leak_rate", "psnr", "ssim", "time_s"]
     assert rest == ["technique", "mae", "mae_penumbra", "flip_penumbra"]
     assert "| mae_penumbra |" in (tmp_path / "r" / "summary.md").read_text()  # the Markdown keeps one table
+
+
+def test_scatter_labels_of_clustered_points_do_not_overlap():
+    """Techniques of nearly equal time and error (vsm/evsm/msm, sdf_linear/sdf_convex) used to
+    print their labels on top of each other; each label box is now clear of the others and of
+    every point, and a label moved away has a leader line to its point."""
+    from shadowlab.report.charts import _CHAR_W, _LABEL_H, scatter_chart
+    names = ["vsm", "evsm", "msm", "sdf_linear", "sdf_convex", "hard"]
+    pts = [(n, 0.010 + 1e-5 * i, 0.050 + 1e-5 * i, "#000") for i, n in enumerate(names[:-1])] + \
+        [("hard", 0.5, 0.2, "#000")]
+    svg = scatter_chart("t", pts, xlabel="time", ylabel="rmse")
+    labels = re.findall(r'<text x="([-\d.]+)" y="([-\d.]+)">([a-z_]+)</text>', svg)
+    assert sorted(n for _, _, n in labels) == sorted(names)
+    boxes = {n: (float(x) - 1, float(y) + 3 - _LABEL_H, _CHAR_W * len(n) + 2, _LABEL_H) for x, y, n in labels}
+    dots = [(float(cx) - 5, float(cy) - 5, 10, 10) for cx, cy in re.findall(r'<circle cx="([\d.]+)" cy="([\d.]+)"', svg)]
+
+    def hit(a, b):
+        return a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]
+    items = list(boxes.items())
+    assert not [(a, b) for i, (a, ba) in enumerate(items) for b, bb in items[i + 1:] if hit(ba, bb)]
+    assert not [n for n, b in boxes.items() for d in dots if hit(b, d)]
+    assert svg.count("<line") - svg.count('stroke="#eee"') >= 3          # leader lines of the moved labels
 
 
 def test_charts_and_comparator_data(tmp_path):
@@ -306,7 +328,7 @@ def test_the_gate_verdict_is_at_the_top_not_a_json_dump(tmp_path):
                                "op": ">=", "passed": False, "text": "fraction of pixels that pass"}]}
     html = build(tmp_path / "r", run).read_text()
     verdict = html.index('<div class="verdict fail" id="verdict"><span class="word">FAIL</span>')
-    assert verdict < html.index("<h2>Metrics</h2>") and verdict < html.index("Reference: 256 spp")
+    assert verdict < html.index("<h2>Metrics</h2>") and verdict < html.index("Reference: 256 shadow rays")
     rows = re.findall(r'<td class="(pass|fail)">', html)
     assert rows == ["fail", "pass"]                            # failed checks first
     assert "shadow.key" in html and "note: a note" in html

@@ -180,6 +180,23 @@ def _fmt(v: float) -> str:
     return f"{v:.4g}"
 
 
+_NOT = {"<=": ">", ">=": "<", ">": "<=", "<": ">="}
+
+
+def verdict_text(v: float, lim: float, op: str, ok: bool, what: str = "budget") -> str:
+    """The relation that holds between a measured value and its threshold, in words a reader can
+    check: ``0.06 <= budget 0.07`` when it passed, ``0.0705 > budget 0.07`` when it failed; the
+    two numbers get as many digits as it takes to tell them apart.
+
+    >>> verdict_text(0.07048, 0.07, "<=", False), verdict_text(0.0700001, 0.07, "<=", False)
+    ('0.0705 > budget 0.07', '0.0700001 > budget 0.07')
+    """
+    digits = 3
+    while digits < 12 and v != lim and f"{v:.{digits}g}" == f"{lim:.{digits}g}":
+        digits += 1
+    return f"{v:.{digits}g} {op if ok else _NOT[op]} {what} {lim:.{digits}g}"
+
+
 def _budget_metrics(cand, tgt: Target, keys, visibility) -> dict:
     out: dict = {}
     if tgt.kind == "visibility":
@@ -228,7 +245,7 @@ def check(candidate, reference, thresholds, *, target: str = "shaded", light: st
     >>> ref = np.full((8, 8), 0.5); cand = ref + 0.001
     >>> r = check(cand, ref, {"budget": {"rmse": 0.01}}, target="visibility", name="demo")
     >>> r.passed, r.lines()
-    (True, ['PASS  demo  budget.rmse  0.001 <= 0.01'])
+    (True, ['PASS  demo  budget.rmse  0.001 <= budget 0.01'])
     """
     th = parse_thresholds(thresholds, where=f"gate {name!r}")
     if target not in TARGETS:
@@ -333,6 +350,6 @@ def check(candidate, reference, thresholds, *, target: str = "shaded", light: st
                                         "n/a (empty region: no pixel to measure)"))
                 continue
             ok = v >= lim if hib else v <= lim
-            res.checks.append(Check(f"budget.{k}", "budget", v, lim, op, ok, f"{_fmt(v)} {op} {_fmt(lim)}"))
+            res.checks.append(Check(f"budget.{k}", "budget", v, lim, op, ok, verdict_text(v, lim, op, ok)))
         res.info["metrics"] = {k: float(v) for k, v in vals.items()}
     return res

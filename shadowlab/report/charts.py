@@ -134,6 +134,50 @@ def _axis(lo: float, hi: float, log: bool):
     return ticks, [f"{t:g}" for t in ticks], lambda v: (v - t0) / (t1 - t0)
 
 
+#: the box of a label in the charts' 12 px sans-serif: width per character and height (px)
+_CHAR_W, _LABEL_H = 7.0, 14.0
+
+
+def _overlaps(a, b) -> bool:
+    return a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]
+
+
+def place_labels(points, names, *, bounds, r: float = 5.0) -> list[tuple]:
+    """A box (x, y, w, h) for each point's label, placed greedily so that no two labels and no
+    label and point overlap: right of the point if free, else left, above, below, then further
+    out in growing rings (the chart draws a leader line to a label moved away). ``bounds``:
+    (x0, y0, x1, y1) that labels stay inside where they can.
+
+    >>> boxes = place_labels([(100, 100), (101, 101), (102, 100)], ["vsm", "evsm", "msm"], bounds=(0, 0, 400, 300))
+    >>> any(_overlaps(a, b) for i, a in enumerate(boxes) for b in boxes[i + 1:])
+    False
+    """
+    x0, y0, x1, y1 = bounds
+    dots = [(x - r, y - r, 2 * r, 2 * r) for x, y in points]
+    placed: list[tuple] = []
+    out: list[tuple | None] = [None] * len(points)
+    for i in sorted(range(len(points)), key=lambda i: (points[i][1], points[i][0])):
+        (x, y), w, h = points[i], _CHAR_W * len(str(names[i])) + 2, _LABEL_H
+        cands = [(x + r + 2, y - h / 2), (x - r - 2 - w, y - h / 2), (x - w / 2, y - r - 2 - h), (x - w / 2, y + r + 2)]
+        for ring in range(1, 12):
+            d = ring * h
+            cands += [(x + r + 2, y - h / 2 - d), (x + r + 2, y - h / 2 + d), (x - r - 2 - w, y - h / 2 - d),
+                      (x - r - 2 - w, y - h / 2 + d), (x + r + 2 + d, y - h / 2), (x - r - 2 - w - d, y - h / 2)]
+        best = None
+        for cx, cy in cands:
+            box = (cx, cy, w, h)
+            inside = x0 <= cx and cx + w <= x1 and y0 <= cy and cy + h <= y1
+            if inside and not any(_overlaps(box, o) for o in placed + dots):
+                best = box
+                break
+        if best is None:   # nothing free: the first candidate inside the bounds, else the first
+            best = next(((cx, cy, w, h) for cx, cy in cands if x0 <= cx and cx + w <= x1 and y0 <= cy
+                         and cy + h <= y1), (cands[0][0], cands[0][1], w, h))
+        placed.append(best)
+        out[i] = best
+    return out
+
+
 def scatter_chart(title: str, points, *, xlabel: str, ylabel: str, width: int = _W, height: int = 300) -> str:
     """One labelled point per ``(name, x, y, colour)``; points with a missing or (on the log
     axis) non-positive value are listed as "n/a" below the plot. The x axis is logarithmic when
@@ -155,11 +199,17 @@ def scatter_chart(title: str, points, *, xlabel: str, ylabel: str, width: int = 
         body += [f'<line x1="{left}" x2="{left + pw}" y1="{Y(t):.1f}" y2="{Y(t):.1f}" stroke="#eee"/>'
                  f'<text x="{left - 4}" y="{Y(t) + 4:.1f}" text-anchor="end" fill="#555">{s}</text>'
                  for t, s in zip(yt, yl)]
-        for name, xv, yv, col in good:
-            cx, cy = X(float(xv)), Y(float(yv))
+        centres = [(X(float(xv)), Y(float(yv))) for _, xv, yv, _ in good]
+        boxes = place_labels(centres, [p[0] for p in good], bounds=(0, 0, width, height))
+        for (name, xv, yv, col), (cx, cy), (bx, by, bw, bh) in zip(good, centres, boxes):
             body.append(f'<circle cx="{cx:.1f}" cy="{cy:.1f}" r="5" fill="{col}" stroke="#333" stroke-width=".5">'
-                        f"<title>{_e(name)}: {xlabel} {_fmt(xv)}, {ylabel} {_fmt(yv)}</title></circle>"
-                        f'<text x="{cx + 7:.1f}" y="{cy + 4:.1f}">{_e(name)}</text>')
+                        f"<title>{_e(name)}: {xlabel} {_fmt(xv)}, {ylabel} {_fmt(yv)}</title></circle>")
+            tx, ty = bx + 1, by + bh - 3
+            if not (abs(bx - cx - 7) < 1 and abs(by + bh / 2 - cy) < 1):   # moved away: a leader line to the point
+                lx, ly = min(max(cx, bx), bx + bw), min(max(cy, by), by + bh)
+                body.append(f'<line x1="{cx:.1f}" y1="{cy:.1f}" x2="{lx:.1f}" y2="{ly:.1f}" stroke="#999" '
+                            'stroke-width=".7"/>')
+            body.append(f'<text x="{tx:.1f}" y="{ty:.1f}">{_e(name)}</text>')
     body.append(
         f'<rect x="{left}" y="{_TOP}" width="{pw}" height="{ph}" fill="none" stroke="#888"/>'
         f'<text x="{left + pw / 2:.1f}" y="{height - 8}" text-anchor="middle">{_e(xlabel)}'
@@ -295,4 +345,24 @@ def run_charts(run) -> str:
     if not techs:
         return ""
     figs = (_per_light_bars(techs, lights) if lights else []) + _time_scatter(techs) + _band_lines(techs, lights)
+    return '<div class="charts">' + "".join(figs) + "</div>" if figs else ""
+
+
+def frame_charts(summary, metrics) -> str:
+    """The charts of a multi-frame page: per metric, a line per technique over the frames, and the
+    shimmer (mean and p99, pooled over lights) of each technique beside the truth's."""
+    fr, names = summary["frames"], list(summary["techniques"])
+    figs = []
+    for m in metrics:
+        lines = {n: [summary["per_frame"][str(f)][n]["metrics"].get(m) for f in fr] for n in names}
+        if any(_ok(v) for vs in lines.values() for v in vs):
+            figs.append(_figure(line_chart(f"{m} per frame", [str(f) for f in fr], lines, xlabel="frame",
+                                           ylabel=m), legend(names)))
+    sh = summary.get("shimmer")
+    if sh:
+        vals = {n: {"mean": d["pooled"]["mean"], "p99": d["pooled"]["p99"]} for n, d in sh["techniques"].items()}
+        if sh["truth"]["pooled"]:
+            vals["truth"] = {"mean": sh["truth"]["pooled"]["mean"], "p99": sh["truth"]["pooled"]["p99"]}
+        figs.append(_figure(bar_chart("shimmer |V_t − V_t−1| at fixed points, all lights", list(vals),
+                                      ["mean", "p99"], vals), legend(["mean", "p99"])))
     return '<div class="charts">' + "".join(figs) + "</div>" if figs else ""

@@ -15,9 +15,11 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 
-from .jsonable import to_jsonable
-from .tables import fmt_value
 from ..io.outdir import MARKER, claim_dir, inside, marker_text
+from .charts import frame_charts
+from .jsonable import to_jsonable
+from .panels import CSS, TRUTH_SHADED, shaded_error_png
+from .tables import fmt_value
 
 __all__ = ["build_frames", "frames_summary", "FRAME_METRICS"]
 
@@ -73,38 +75,74 @@ def frames_summary(summary: Mapping) -> str:
     return "\n".join(lines)
 
 
+def _image_grid(summary: Mapping) -> list[str]:
+    """Thumbnails from the frames' own reports, each linked to its report: the truth's shaded
+    image per frame, then each technique's shaded error heat map per frame (one colour scale per
+    frame's report: see its legend there)."""
+    reports, fr = summary.get("reports") or {}, summary["frames"]
+    if not reports:
+        return []
+    e = _html.escape
+
+    def cell(f, fname, alt):
+        rep = reports[str(f)]
+        src = f"{os.path.dirname(rep)}/img/{fname}"
+        return f'<td><a href="{e(rep)}"><img class="im thumb" src="{e(src)}" alt="{e(alt)}" title="{e(alt)}"></a></td>'
+
+    p = ['<div class="wide"><table class="grid"><tr><th></th>'
+         + "".join(f'<th><a href="{e(reports[str(f)])}">frame {f}</a></th>' for f in fr) + "</tr>",
+         '<tr><th class="row">truth (shaded)</th>' + "".join(cell(f, TRUTH_SHADED, f"truth frame {f}") for f in fr)
+         + "</tr>"]
+    for i, n in enumerate(summary["techniques"]):
+        p.append(f'<tr><th class="row">{e(n)}<br>signed error (shaded)</th>'
+                 + "".join(cell(f, shaded_error_png(i, n), f"{n} error frame {f}") for f in fr) + "</tr>")
+    p.append("</table></div>")
+    return p
+
+
 def _html_page(summary: Mapping) -> str:
     e = _html.escape
     fr = summary["frames"]
-    p = ["<!doctype html><meta charset='utf-8'>",
-         f"<title>shadowlab: {e(summary['scene'])} frames {fr[0]}..{fr[-1]}</title>",
-         "<style>body{font-family:sans-serif}td,th{padding:2px 8px;text-align:right}"
-         "td:first-child,th:first-child{text-align:left}</style>",
-         f"<h1>{e(summary['scene'])} ({summary['resolution'][0]}x{summary['resolution'][1]}), "
-         f"frames {fr[0]}..{fr[-1]}</h1>"]
+    title = f"{summary['scene']} ({summary['resolution'][0]}×{summary['resolution'][1]}), frames {fr[0]}..{fr[-1]}"
+    p = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
+         '<meta name="viewport" content="width=device-width, initial-scale=1">',
+         f"<title>shadowlab: {e(title)}</title>",
+         f"<style>{CSS}img.thumb {{ width: 160px; }}</style></head><body>",
+         f"<h1>shadowlab report: {e(title)}</h1>",
+         '<p class="ref">A technique × frame comparison along the camera path; each frame links to its own '
+         "report (images, heat maps, the comparator).</p>"]
     reports = summary.get("reports", {})
+    charts = frame_charts(summary, FRAME_METRICS)
+    if charts:
+        p += ["<h2>Charts</h2>", charts]
+    grid = _image_grid(summary)
+    if grid:
+        p += ["<h2>Frames</h2>"] + grid
     for m in FRAME_METRICS:
         if not any(_metric(summary, n, fr[0], m) is not None for n in summary["techniques"]):
             continue
         head = "".join(f"<th><a href='{e(reports[str(f)])}'>frame {f}</a></th>" if str(f) in reports
                        else f"<th>frame {f}</th>" for f in fr)
-        p.append(f"<h2>{e(m)} per frame</h2><table><tr><th>technique</th>{head}</tr>")
+        p.append(f'<h2>{e(m)} per frame</h2><div class="wide"><table class="metrics"><thead><tr><th>technique</th>'
+                 f"{head}</tr></thead><tbody>")
         for n in summary["techniques"]:
             p.append(f"<tr><td>{e(n)}</td>" + "".join(f"<td>{fmt_value(_metric(summary, n, f, m))}</td>" for f in fr)
                      + "</tr>")
-        p.append("</table>")
+        p.append("</tbody></table></div>")
     sh = summary.get("shimmer")
     if sh:
         p.append("<h2>Temporal stability (shimmer)</h2>"
-                 f"<p>|V<sub>t</sub>(x) − V<sub>t−1</sub>(x)| at fixed world points x ({e(sh['points'])}) with each "
-                 f"frame's light views, over {len(sh['frames']) - 1} frame pairs.</p>"
-                 "<table><tr><th>technique</th><th>light</th><th>mean</th><th>p99</th></tr>")
+                 f'<p class="note">|V<sub>t</sub>(x) − V<sub>t−1</sub>(x)| at fixed world points x ({e(sh["points"])}) '
+                 f"with each frame's light views, over {len(sh['frames']) - 1} frame pairs.</p>"
+                 '<table class="metrics"><thead><tr><th>technique</th><th>light</th><th>mean</th><th>p99</th></tr>'
+                 "</thead><tbody>")
         p += [
             f"<tr><td>{e(a)}</td><td>{e(b)}</td><td>{c}</td><td>{d}</td></tr>" for a, b, c, d in _shimmer_rows(summary)
         ]
-        p.append(f"</table><p>Truth: {e(sh['truth']['why'])}.</p>")
+        p.append(f'</tbody></table><p class="note">Truth: {e(sh["truth"]["why"])}.</p>')
     else:
-        p.append("<p>Temporal stability (shimmer) needs two frames or more.</p>")
+        p.append('<p class="note">Temporal stability (shimmer) needs two frames or more.</p>')
+    p.append("</body></html>")
     return "\n".join(p) + "\n"
 
 

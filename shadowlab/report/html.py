@@ -44,7 +44,7 @@ from . import comparator as _cmp
 from . import images as _im
 from .jsonable import to_jsonable
 from .lights import light_rows
-from .panels import esc, img_tag, legend, panel_rows, slug
+from .panels import CSS, TRUTH_SHADED, esc, img_tag, legend, panel_rows, shaded_error_png, slug, technique_tag
 from .run import Run
 from .tables import (KEY_METRICS, NA, band_tables, bands_markdown, fmt_value, gate_markdown, metric_columns,
                      reference_line, stats_markdown, stats_tables, summary_table, table_cells)
@@ -54,47 +54,12 @@ __all__ = ["build", "OUTPUT_FILES", "OUTPUT_DIRS"]
 
 OUTPUT_FILES = ("index.html", "summary.md", "metrics.json")
 OUTPUT_DIRS = ("img",)
-_IMG_CSS_WIDTH = 256
 
 
 # --------------------------------------------------------------------------------------------
 # HTML
 
-_CSS = f"""
-body {{ font-family: system-ui, sans-serif; margin: 1.5em; color: #222; }}
-h1 {{ font-size: 1.5em; margin-bottom: .2em; }}
-h2 {{ font-size: 1.2em; margin-top: 1.6em; border-bottom: 1px solid #ccc; }}
-.ref {{ color: #444; margin-top: 0; }}
-table.metrics {{ border-collapse: collapse; font-variant-numeric: tabular-nums; }}
-table.metrics th, table.metrics td {{ border: 1px solid #ccc; padding: 3px 8px; text-align: right; }}
-table.metrics th:first-child, table.metrics td:first-child {{ text-align: left; }}
-table.grid {{ border-collapse: collapse; }}
-table.grid th, table.grid td {{ padding: 4px 6px; vertical-align: top; text-align: left; }}
-table.grid th.row {{ max-width: 14em; font-weight: normal; font-size: .85em; }}
-img.im {{ width: {_IMG_CSS_WIDTH}px; height: auto; image-rendering: pixelated; border: 1px solid #bbb; display: block; }}
-img.cbar {{ width: {_IMG_CSS_WIDTH}px; height: 10px; image-rendering: pixelated; display: block; margin-top: 3px; }}
-.ticks {{ width: {_IMG_CSS_WIDTH}px; display: flex; justify-content: space-between; font-size: .75em; color: #444; }}
-.note {{ font-size: .85em; color: #555; }}
-code {{ font-size: .9em; }}
-.wide {{ max-width: 100%; overflow-x: auto; }}
-table.metrics td.text, table.lights td, table.lights th {{ text-align: left; max-width: 40em; }}
-.verdict {{ font-size: 1.1em; padding: .5em .8em; margin: .6em 0; border-radius: 4px; max-width: 60em; }}
-.verdict .word {{ font-size: 1.5em; font-weight: 700; margin-right: .4em; vertical-align: middle; }}
-.verdict.pass {{ background: #e6f4ea; border: 1px solid #1a7f37; color: #1a7f37; }}
-.verdict.fail {{ background: #fbe9eb; border: 1px solid #b2182b; color: #b2182b; }}
-table.checks th, table.checks td {{ text-align: left; }}
-table.checks td:nth-child(4), table.checks td:nth-child(5) {{ text-align: right; white-space: nowrap; }}
-td.pass {{ color: #1a7f37; font-weight: 600; }}
-td.fail {{ color: #b2182b; font-weight: 600; }}
-ul.facts {{ font-size: .9em; color: #333; padding-left: 1.2em; }}
-.charts {{ display: flex; flex-wrap: wrap; gap: 1em 2em; }}
-figure.chart {{ margin: 0; }}
-figure.chart svg {{ display: block; max-width: 100%; height: auto; }}
-.chart-legend {{ font-size: .8em; display: flex; flex-wrap: wrap; gap: .2em 1em; }}
-.chart-legend i {{ display: inline-block; width: .8em; height: .8em; margin-right: .3em; vertical-align: -1px; }}
-a.open {{ font-size: .6em; font-weight: normal; margin-left: .6em; }}
-details pre {{ white-space: pre-wrap; word-break: break-all; font-size: .8em; }}
-"""  # noqa: E501
+
 
 
 def _metric_line(d: Mapping) -> str:
@@ -205,7 +170,7 @@ def _render(run: Run, img_dir: Path) -> str:
         return fname
 
     put("colorbar.png", _im.colorbar_png())
-    truth_shaded = put("truth_shaded.png", _im.shaded_png(truth.shaded, exposure))
+    truth_shaded = put(TRUTH_SHADED, _im.shaded_png(truth.shaded, exposure))
     truth_vis = {
         ln: put(f"truth_vis_{j}_{slug(ln)}.png", _im.visibility_png(truth.vis[ln])) for j, ln in enumerate(lights)
     }
@@ -232,7 +197,7 @@ def _render(run: Run, img_dir: Path) -> str:
         '<html lang="en"><head><meta charset="utf-8">',
         '<meta name="viewport" content="width=device-width, initial-scale=1">',
         f"<title>shadowlab: {esc(run.scene)} {w}×{h}</title>",
-        f"<style>{_CSS}{_cmp.CSS}</style></head><body>",
+        f"<style>{CSS}{_cmp.CSS}</style></head><body>",
         f"<h1>shadowlab report: {esc(run.scene)} — {w}×{h}</h1>",
     ]
     p += _verdict(run)
@@ -285,7 +250,7 @@ def _render(run: Run, img_dir: Path) -> str:
     for i, name in enumerate(techs):
         t = techs[name]
         ti = imgs.techniques[name]
-        tag = f"t{i}_{slug(name)}"
+        tag = technique_tag(i, name)
         cmp_i = len(cmp_items)
         layers = []
         tp.append(f'<h2 id="t{i}">{esc(name)} <a class="open" href="#cmp" data-cmp-item="{cmp_i}" '
@@ -315,7 +280,7 @@ def _render(run: Run, img_dir: Path) -> str:
             )
             tp += panel_rows(ti, ln, name, f"{tag}_{{}}_{j}_{slug(ln)}.png", put)
         sf = put(f"{tag}_shaded.png", _im.shaded_png(ti.shaded, exposure))
-        sef = put(f"{tag}_shaded_err.png", _im.encode_png(_im.signed_error_heatmap(shaded_err[name], shaded_scale)))
+        sef = put(shaded_error_png(i, name), _im.encode_png(_im.signed_error_heatmap(shaded_err[name], shaded_scale)))
         layers.insert(
             0, _cmp.layer("shaded", f"img/{sf}", f"img/{truth_shaded}", f"img/{sef}", fmt_value(shaded_scale))
         )

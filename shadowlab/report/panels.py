@@ -12,11 +12,63 @@ import numpy as np
 from . import images as _im
 from .tables import fmt_value
 
-__all__ = ["slug", "esc", "img_tag", "legend", "panel_rows"]
+__all__ = ["CSS", "slug", "esc", "img_tag", "legend", "panel_rows", "technique_tag", "TRUTH_SHADED",
+           "shaded_error_png"]
+
+_IMG_CSS_WIDTH = 256
+#: the truth's shaded image in a report's img/
+TRUTH_SHADED = "truth_shaded.png"
+
+#: the stylesheet of every report page
+CSS = f"""
+body {{ font-family: system-ui, sans-serif; margin: 1.5em; color: #222; }}
+h1 {{ font-size: 1.5em; margin-bottom: .2em; }}
+h2 {{ font-size: 1.2em; margin-top: 1.6em; border-bottom: 1px solid #ccc; }}
+.ref {{ color: #444; margin-top: 0; }}
+table.metrics {{ border-collapse: collapse; font-variant-numeric: tabular-nums; }}
+table.metrics th, table.metrics td {{ border: 1px solid #ccc; padding: 3px 8px; text-align: right; }}
+table.metrics th:first-child, table.metrics td:first-child {{ text-align: left; }}
+table.grid {{ border-collapse: collapse; }}
+table.grid th, table.grid td {{ padding: 4px 6px; vertical-align: top; text-align: left; }}
+table.grid th.row {{ max-width: 14em; font-weight: normal; font-size: .85em; }}
+img.im {{ width: {_IMG_CSS_WIDTH}px; height: auto; image-rendering: pixelated; border: 1px solid #bbb; display: block; }}
+img.cbar {{ width: {_IMG_CSS_WIDTH}px; height: 10px; image-rendering: pixelated; display: block; margin-top: 3px; }}
+.ticks {{ width: {_IMG_CSS_WIDTH}px; display: flex; justify-content: space-between; font-size: .75em; color: #444; }}
+.note {{ font-size: .85em; color: #555; }}
+code {{ font-size: .9em; }}
+.wide {{ max-width: 100%; overflow-x: auto; }}
+table.metrics td.text, table.lights td, table.lights th {{ text-align: left; max-width: 40em; }}
+.verdict {{ font-size: 1.1em; padding: .5em .8em; margin: .6em 0; border-radius: 4px; max-width: 60em; }}
+.verdict .word {{ font-size: 1.5em; font-weight: 700; margin-right: .4em; vertical-align: middle; }}
+.verdict.pass {{ background: #e6f4ea; border: 1px solid #1a7f37; color: #1a7f37; }}
+.verdict.fail {{ background: #fbe9eb; border: 1px solid #b2182b; color: #b2182b; }}
+table.checks th, table.checks td {{ text-align: left; }}
+table.checks td:nth-child(4), table.checks td:nth-child(5) {{ text-align: right; white-space: nowrap; }}
+td.pass {{ color: #1a7f37; font-weight: 600; }}
+td.fail {{ color: #b2182b; font-weight: 600; }}
+ul.facts {{ font-size: .9em; color: #333; padding-left: 1.2em; }}
+.charts {{ display: flex; flex-wrap: wrap; gap: 1em 2em; }}
+figure.chart {{ margin: 0; }}
+figure.chart svg {{ display: block; max-width: 100%; height: auto; }}
+.chart-legend {{ font-size: .8em; display: flex; flex-wrap: wrap; gap: .2em 1em; }}
+.chart-legend i {{ display: inline-block; width: .8em; height: .8em; margin-right: .3em; vertical-align: -1px; }}
+a.open {{ font-size: .6em; font-weight: normal; margin-left: .6em; }}
+details pre {{ white-space: pre-wrap; word-break: break-all; font-size: .8em; }}
+"""  # noqa: E501
 
 
 def slug(s: str) -> str:
     return (re.sub(r"[^A-Za-z0-9_-]+", "-", s).strip("-") or "x")[:40]
+
+
+def technique_tag(i: int, name: str) -> str:
+    """The prefix of the i-th technique's image files in a report's img/ (and its anchor)."""
+    return f"t{i}_{slug(name)}"
+
+
+def shaded_error_png(i: int, name: str) -> str:
+    """The file name of the i-th technique's shaded error heat map in a report's img/."""
+    return f"{technique_tag(i, name)}_shaded_err.png"
 
 
 def esc(s) -> str:

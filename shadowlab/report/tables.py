@@ -13,8 +13,8 @@ from .charts import band_kinds
 from .run import Run
 
 __all__ = ["KEY_METRICS", "NA", "higher_is_better", "fmt_value", "metric_columns", "table_cells", "reference_line",
-           "md_escape", "summary_table", "stats_tables", "band_tables", "bands_markdown", "gate_markdown",
-           "stats_markdown"]
+           "md_escape", "summary_table", "terminal_table", "stats_tables", "band_tables", "bands_markdown",
+           "gate_markdown", "stats_markdown"]
 
 _HIGHER_IS_BETTER_PREFIXES = ("psnr", "ssim")
 NA = "n/a"
@@ -82,7 +82,8 @@ def reference_line(run: Mapping) -> str:
     ref = run["reference"]
     spp = ref["spp"]
     spp_s = str(int(spp)) if float(spp).is_integer() else fmt_value(spp)
-    return f"Reference: {spp_s} spp, max standard error {fmt_value(ref['max_std_error'])}"
+    return (f"Reference: {spp_s} shadow rays per pixel and light (mean; the truth adds rays where a pixel's "
+            f"standard error is above its target), max standard error {fmt_value(ref['max_std_error'])}")
 
 
 def md_escape(s: str) -> str:
@@ -100,7 +101,7 @@ def summary_table(run: Mapping) -> str:
     >>> print(summary_table(run))  # doctest: +NORMALIZE_WHITESPACE
     # shadowlab report: s (4x4)
     <BLANKLINE>
-    Reference: 64 spp, max standard error 0.01
+    Reference: 64 shadow rays per pixel and light (mean; the truth adds rays where a pixel's standard error is above its target), max standard error 0.01
     <BLANKLINE>
     | technique | rmse | psnr | time_s |
     |---|---:|---:|---:|
@@ -129,6 +130,43 @@ def summary_table(run: Mapping) -> str:
         "Best value per column in bold (highest for psnr/ssim, lowest otherwise). "
         f"{NA} = not available (NaN/inf are null in metrics.json).",
     ]
+    return "\n".join(lines)
+
+
+def terminal_table(run: Mapping, width: int = 100) -> str:
+    """The summary a command prints: the run's title and reference, then a plain table of the key
+    columns (:data:`KEY_METRICS` the run has, and time_s) no wider than ``width`` characters (the
+    terminal's); columns that do not fit are left out and named, with where to find them.
+
+    >>> run = {"scene": "s", "resolution": [4, 4], "reference": {"spp": 64, "max_std_error": 0.01},
+    ...        "lights": ["key"], "techniques": {"hard": {"params": {}, "time_s": 0.0012,
+    ...        "metrics": {"rmse": 0.123456, "psnr": 18.2, "flip": 0.05}, "per_light": {}}}}
+    >>> print(terminal_table(run, width=30))
+    shadowlab: s (4x4), 1 technique
+    technique    rmse  psnr  flip
+    hard       0.1235  18.2  0.05
+    not shown: time_s (all in summary.md, metrics.json)
+    """
+    run = Run.from_mapping(run, need_images=False)
+    all_cols = metric_columns(run.techniques)
+    cols = [c for c in KEY_METRICS if c in all_cols] + ["time_s"]
+    names = list(run.techniques)
+    _, _, rows = table_cells(run, cols)
+    first = max([len("technique")] + [len(n) for n in names])
+    widths = [max([len(c)] + [len(r[i][0]) for r in rows]) for i, c in enumerate(cols)]
+    shown = 0
+    total = first
+    while shown < len(cols) and total + 2 + widths[shown] <= max(width, first + 2 + widths[0]):
+        total += 2 + widths[shown]
+        shown += 1
+    n = len(names)
+    lines = [f"shadowlab: {run.scene} ({run.resolution[0]}x{run.resolution[1]}), {n} technique{'s' if n != 1 else ''}",
+             "technique".ljust(first) + "".join("  " + c.rjust(w) for c, w in zip(cols[:shown], widths))]
+    lines += [name.ljust(first) + "".join("  " + v.rjust(w) for (v, _), w in zip(r[:shown], widths))
+              for name, r in zip(names, rows)]
+    hidden = cols[shown:] + [c for c in all_cols if c not in cols]
+    if hidden:
+        lines.append(f"not shown: {', '.join(hidden)} (all in summary.md, metrics.json)")
     return "\n".join(lines)
 
 
