@@ -26,6 +26,7 @@ import traceback
 from pathlib import Path
 from typing import List, Optional
 
+from .errors import INTERNAL_ERROR, GateFailure, InputError, Interrupted, ShadowlabError
 
 
 def _startup_signal(signum, frame):
@@ -40,8 +41,6 @@ if __name__ == "__main__" or os.path.basename(sys.argv[0] or "") == "shadowlab":
         signal.signal(_s, _startup_signal)
 
 import typer  # noqa: E402 - after the start-up handler: importing typer is most of start-up
-
-from .errors import INTERNAL_ERROR, GateFailure, InputError, Interrupted, ShadowlabError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Real-time shadow techniques against Mitsuba 3 ground truth.")
