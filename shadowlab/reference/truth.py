@@ -370,7 +370,7 @@ def visibility(frame: FrameContext, light_name: str, *, k: int = 8, target_se=0.
     does not reach: V = 1 there, no samples, as where there is no surface).
     """
 
-    scene, gb = frame.scene, frame.gbuffer
+    scene, gb = frame.scene.casters, frame.gbuffer  # shadow rays see what casts shadows (casts_shadows)
     spec = scene.spec.light(light_name)
     emitter = scene.emitters[light_name]
     if spec.is_delta:
@@ -655,9 +655,10 @@ def centre_visibility(frame: FrameContext, light_name: str):
     """Exact hard-shadow visibility of the light's centre at the G-buffer points (flat ``mi.Float``,
     1 lit, 0 blocked; 1 where there is no surface): one Mitsuba ray per point toward the centre of
     a positional light, or against a directional light's direction, skipping the light's own
-    shape (the truth's emitter: the sun's far disk, a sphere light's sphere) and, in scenes with
-    alpha-tested casters, their transparent texels. The truth a shadow map's aliasing is measured
-    against: a map of the light's centre converges to it as its resolution grows [Giegl 2007, §5]."""
+    shape (the truth's emitter: the sun's far disk, a sphere light's sphere), surfaces that cast no
+    shadow (``casts_shadows``) and, in scenes with alpha-tested casters, their transparent texels.
+    The truth a shadow map's aliasing is measured against: a map of the light's centre converges to
+    it as its resolution grows [Giegl 2007, §5]."""
     gb = frame.gbuffer
     spec = frame.scene.spec.light(light_name)
     si = gb.si
@@ -669,7 +670,7 @@ def centre_visibility(frame: FrameContext, light_name: str):
         ray = si.spawn_ray_to(mi.Point3f(*[float(x) for x in spec.position]))
         far = ray.maxt
         ray.maxt = dr.inf
-    scene = frame.scene
+    scene = frame.scene.casters
     own = scene.light_shapes.get(light_name)
     shapes = scene.mi_scene.shapes_dr()
     own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None

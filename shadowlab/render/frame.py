@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..scene.lights import forward as light_forward
-from ..scene.mesh import scene_triangles
+from ..scene.mesh import panel_triangles, scene_triangles
 from ..scene.twins import sdf_of
 from . import sdf_gbuffer
 from .camera import Camera
@@ -129,7 +129,8 @@ class FrameContext:
 
     def top_tree(self, light_name: str, segments: int = 64, order: str = "random") -> TopTree:
         """The TOP tree of the light's centre (a point light's position, or a directional light at
-        infinity) over :meth:`triangles`, built once per (light, tessellation, insertion order)."""
+        infinity) over :meth:`triangles` and the other lights' panels that cast shadows
+        (``casts_shadows``), built once per (light, tessellation, insertion order)."""
         key = ("top_tree", light_name, int(segments), order)
         if key not in self._cache:
             spec = self.scene.spec.light(light_name)
@@ -137,7 +138,10 @@ class FrameContext:
                 light = [-x for x in light_forward(spec)] + [0.0]
             else:
                 light = list(spec.position) + [1.0]
-            self._cache[key] = build_top_tree(self.triangles(segments), np.asarray(light, np.float64), order=order)
+            V = self.triangles(segments)
+            panels = panel_triangles(self.scene.spec, segments, exclude=light_name)
+            V = np.concatenate([V, panels]) if len(panels) else V
+            self._cache[key] = build_top_tree(V, np.asarray(light, np.float64), order=order)
         return self._cache[key]
 
     def lit_mask(self, light_name: str) -> np.ndarray:

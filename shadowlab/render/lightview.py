@@ -597,7 +597,8 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     """Render ``light``'s depth map by ray casting (module docstring has the conventions).
 
     ``backface=True`` keeps the first surface facing away from the light (front-face culling,
-    [Buljan 2020, §2.3]). The light's own emitter shape never occludes.
+    [Buljan 2020, §2.3]). The light's own emitter shape never occludes, nor does a surface that
+    casts no shadow (``casts_shadows``: the rays are cast in :attr:`Scene.casters`).
     ``fit``: which part of the scene the map covers (None: :class:`SceneSphere`).
     ``layers`` > 1 also keeps the next ``layers`` − 1 surfaces along each texel's ray (same
     skipping rules), so that a rasterizer's bias, added to every fragment before the depth test,
@@ -607,6 +608,7 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     ``translucent`` (module docstring).
     """
 
+    scene = scene.casters  # the map holds what casts shadows (``casts_shadows``)
     proj = projection(light, scene, res, fit)
     bits = int(bits or light.depth_bits)
     N, F = proj.res, len(proj.faces)

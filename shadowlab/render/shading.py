@@ -107,7 +107,8 @@ def sample_light(scene, si, emitter, k: int, seed: int, rnd: int, shadow: bool, 
     alpha = bool(shadow and getattr(scene, "has_alpha", False))
     light = _light_of(scene, emitter)
     win = range_window(light, si.p) if light is not None else None
-    return light_samples(scene.mi_scene, si, emitter, rng, mi.UInt32(k), shadow, stratified, alpha, win)
+    occluders = scene.casters.mi_scene if shadow else None  # what casts shadows (``casts_shadows``)
+    return light_samples(occluders, si, emitter, rng, mi.UInt32(k), shadow, stratified, alpha, win)
 
 
 MAX_ALPHA_LAYERS = 64  # transparent texels a shadow ray may pass; a ray still on one after that is blocked

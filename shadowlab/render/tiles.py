@@ -269,6 +269,7 @@ def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backfa
     NX = mi.UInt32(np.asarray(tiles.nx, np.uint32))
     TX, TY = tab((tiles.x1 - tiles.x0) / tiles.nx * f0.scale), tab((tiles.y1 - tiles.y0) / tiles.ny * f0.scale)
     R = [mi.Vector3f(*f0.R[r]) for r in range(3)]
+    scene = scene.casters  # the tiles hold what casts shadows (``casts_shadows``)
     own = scene.light_shapes.get(light.name)
     shapes = scene.mi_scene.shapes_dr()
     own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None

@@ -15,6 +15,14 @@ it as an opaque surface and it is lit as one. Only shadow rays and light views s
 straight-line transmission: each crossing multiplies the light by the shape's τ (``ShapeSpec.tau``),
 looked up by :func:`surface_tau` from :meth:`Scene.translucency` (the Mitsuba shapes of each
 translucent shape and their τ); without translucent shapes every ray path stays as it was.
+
+What casts shadows (``casts_shadows``). A shape casts by default; a light's own panel (an area light's
+emitting rectangle, disk or sphere) does not: engines draw a soft box's light but do not let its panel
+shadow the sun, and a panel that casts turned a soft box into a hard sun shadow on the floor. Every
+shadow path (the truth's shadow rays, the light views and tiles, the TOP tree, :func:`Scene.casters`)
+sees only the casting geometry; the camera sees everything (the G-buffer keeps its shape ids).
+Where some geometry does not cast, :func:`build` loads a second Mitsuba scene of the casting shapes
+and panels (:class:`Casters`); where all of it casts, the scene is its own.
 """
 
 from __future__ import annotations
@@ -134,6 +142,16 @@ def _loadable(dicts: dict) -> dict:
     return {k: gltf_mesh(k, v) if v.get("type") == "gltf" else v for k, v in dicts.items()}
 
 
+@dataclass(frozen=True)
+class Casters:
+    """The Mitsuba scene of the geometry that casts shadows, when it differs from the whole scene:
+    its ``mi_scene``, ``shape_names`` and ``light_shapes`` (the casting lights' panels)."""
+
+    mi_scene: object
+    shape_names: list
+    light_shapes: dict
+
+
 @dataclass
 class Scene:
     """A loaded scene: spec, Mitsuba scene, camera sensor and light emitters.
@@ -153,6 +171,18 @@ class Scene:
     bbox_min: tuple = field(default=(0, 0, 0))
     bbox_max: tuple = field(default=(0, 0, 0))
     shape_boxes: list = field(default_factory=list)  # (min, max) of each non-emitting shape
+    occluders: Casters | None = None  # the casting geometry's own Mitsuba scene; None: every surface casts
+
+    @property
+    def casters(self) -> "Scene":
+        """This scene as its shadow rays and light views see it: the same spec, camera, lights and
+        bounds, with ``mi_scene``, ``shape_names`` and ``light_shapes`` of the geometry that casts
+        (``casts_shadows``; module docstring). The scene itself when every surface casts."""
+        o = self.occluders
+        if o is None:
+            return self
+        return replace(self, mi_scene=o.mi_scene, shape_names=o.shape_names, light_shapes=o.light_shapes,
+                       occluders=None)
 
     @property
     def has_alpha(self) -> bool:
@@ -203,6 +233,11 @@ class Scene:
                 "scene has translucent shapes (transmittance): Mitsuba's direct integrator (the mitsuba.* "
                 "channels) treats them as opaque blockers of shadow rays; the V.*, C.* and shaded.* channels "
                 "use straight-line transmission through them. Compare with those.")
+        if self.occluders is not None:
+            notes["mitsuba_direct_ignores_casts_shadows"] = (
+                "scene has surfaces that cast no shadow (casts_shadows = false, the default of a light's panel): "
+                "Mitsuba's direct integrator (the mitsuba.* channels) lets every surface block its shadow rays; "
+                "the V.* and shaded.* channels do not. Compare with those.")
         ranged = [l.name for l in self.spec.lights if getattr(l, "range", None) is not None]
         if ranged:
             notes["mitsuba_direct_ignores_range"] = (
@@ -290,10 +325,11 @@ def sensor_dict(cam, spp: int = 1, seed: int = 0) -> dict:
 def build(spec: SceneSpec) -> Scene:
     """Load ``spec`` into Mitsuba (the backend must be initialised)."""
 
-    def geometry():  # fresh dicts per load: Mitsuba takes over a bitmap texture's "data" tensor
+    def geometry(casting_only: bool = False):  # fresh dicts per load: Mitsuba takes over a bitmap's "data" tensor
         geom = {}
         for s in spec.shapes:
-            geom.update(_loadable(shape_dicts(s)))
+            if s.casts_shadows or not casting_only:
+                geom.update(_loadable(shape_dicts(s)))
         return geom
 
     try:
@@ -335,7 +371,30 @@ def build(spec: SceneSpec) -> Scene:
             emitters[l.name] = em_by_id[key]
     return Scene(spec=spec, mi_scene=ms, sensor=ms.sensors()[0], emitters=emitters, light_shapes=light_shapes,
                  shape_names=names, center=center, radius=radius, bbox_min=lo, bbox_max=hi,
-                 shape_boxes=boxes)
+                 shape_boxes=boxes, occluders=_casters(spec, geometry, center, radius, light_shapes))
+
+
+def _casters(spec: SceneSpec, geometry, center, radius, light_shapes: dict) -> Casters | None:
+    """The Mitsuba scene of the casting geometry (shapes with ``casts_shadows``, the panels of the
+    lights with ``casts_shadows``), or None where it blocks what all of the scene's surfaces block: a
+    light's own panel never blocks its own light, so with one light a panel that does not cast changes
+    nothing (and the scene keeps its one Mitsuba scene)."""
+    panels = [l for l in spec.lights if l.name in light_shapes]
+    quiet = [l for l in panels if not l.casts_shadows] if len(spec.lights) > 1 else []
+    if all(s.casts_shadows for s in spec.shapes) and not quiet:
+        return None
+    d = {"type": "scene", **geometry(casting_only=True)}
+    for l in panels:
+        if l.casts_shadows:
+            key, ld = lights_mod.mitsuba_dict(l, center, radius)
+            d[key] = ld
+    try:
+        ms = mi.load_dict(d, optimize=False)
+    except Exception as e:
+        raise SceneError(f"{spec.source}: Mitsuba could not load the shapes that cast shadows: {e}") from e
+    names = [sh.id() for sh in ms.shapes()]
+    return Casters(mi_scene=ms, shape_names=names,
+                   light_shapes={l.name: names.index(f"light_{l.name}") for l in panels if l.casts_shadows})
 
 
 def load(scene: str, resolution: tuple | None = None, frame: int | None = None) -> Scene:

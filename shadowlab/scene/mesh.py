@@ -32,8 +32,9 @@ from ..errors import SceneError
 
 from .build import shape_dicts
 from .gltf_file import mesh_arrays
+from .lights import mitsuba_dict as light_dict
 
-__all__ = ["triangulate", "matrix_of", "sagitta", "scene_triangles", "shape_mesh"]
+__all__ = ["triangulate", "matrix_of", "sagitta", "scene_triangles", "panel_triangles", "shape_mesh"]
 
 
 def sagitta(segments: int) -> float:
@@ -183,12 +184,15 @@ def shape_mesh(shape, segments: int = 64):
 
 
 def scene_triangles(spec, segments: int = 64) -> tuple[np.ndarray, np.ndarray]:
-    """Every triangle of the scene's shapes (``spec.shapes``; the lights' own emitting shapes are
-    not among them), world space: (T×3×3 float64 vertices, T int shape index into ``spec.shapes``).
-    Rectangles and cubes are exact, PLY/OBJ meshes as Mitsuba loads them, curved primitives
-    inscribed with ``segments`` segments (the table above)."""
+    """Every triangle of the scene's shapes that cast shadows (``spec.shapes`` with ``casts_shadows``;
+    the lights' own emitting shapes are not among them: :func:`panel_triangles`), world space:
+    (T×3×3 float64 vertices, T int shape index into ``spec.shapes``). Rectangles and cubes are exact,
+    PLY/OBJ meshes as Mitsuba loads them, curved primitives inscribed with ``segments`` segments (the
+    table above)."""
     tris, owner = [], []
     for k, s in enumerate(spec.shapes):
+        if not s.casts_shadows:
+            continue
         for d in shape_dicts(s).values():
             P, _, _, F = triangulate(d, segments)
             tris.append(P[F])
@@ -196,3 +200,14 @@ def scene_triangles(spec, segments: int = 64) -> tuple[np.ndarray, np.ndarray]:
     if not tris:
         return np.zeros((0, 3, 3)), np.zeros(0, np.int32)
     return np.concatenate(tris), np.concatenate(owner)
+
+
+def panel_triangles(spec, segments: int = 64, *, exclude: str | None = None) -> np.ndarray:
+    """The triangles (T×3×3, world) of the panels of the lights that cast shadows (``casts_shadows``),
+    but light ``exclude``'s own (a light never shadows itself); none by default."""
+    tris = []
+    for light in spec.lights:
+        if light.casts_shadows and light.has_panel and light.name != exclude:
+            P, _, _, F = triangulate(light_dict(light, (0.0, 0.0, 0.0), 1.0)[1], segments)
+            tris.append(P[F])
+    return np.concatenate(tris) if tris else np.zeros((0, 3, 3))

@@ -36,13 +36,18 @@ def why_no_twin(shape_spec) -> str | None:
 
 
 def why_no_sdf(spec) -> str | None:
-    """Why a scene spec has no signed distance field (:func:`sdf_of_spec` would give None), None
-    when it has one; from the spec alone, nothing is built."""
-    for s in spec.shapes:
+    """Why a scene spec has no signed distance field of what casts shadows (:func:`sdf_of_spec`
+    would give None), None when it has one; from the spec alone, nothing is built. A shape that
+    casts no shadow (``casts_shadows = false``) needs no twin; a light whose panel casts would
+    (its panel is not in the SDF)."""
+    casting = [s for s in spec.shapes if s.casts_shadows]
+    for s in casting:
         if why := why_no_twin(s):
             return why
-    if not spec.shapes and not getattr(spec, "sdf", ()):
-        return "the scene has no shapes"
+    if lit := [l.name for l in spec.lights if l.casts_shadows]:
+        return f"the panel of light {lit[0]!r} casts shadows (casts_shadows = true) and has no SDF twin"
+    if not casting and not getattr(spec, "sdf", ()):
+        return "no shape casts shadows"
     return None
 
 
@@ -58,11 +63,11 @@ def twin_of_shape(shape_spec) -> SDF | None:
 
 
 def sdf_of_spec(spec) -> SDF | None:
-    """The SDF of a scene spec: Mitsuba twins of its ``[[shapes]]`` and its ``[[sdf]]`` objects,
-    united; None if some shape has no twin (meshes, alpha-tested or open shapes)."""
+    """The SDF of a scene spec: Mitsuba twins of its ``[[shapes]]`` that cast shadows and its ``[[sdf]]``
+    objects, united; None if some such shape has no twin (meshes, alpha-tested or open shapes)."""
     if why_no_sdf(spec):
         return None
-    parts = [twin_of_shape(s) for s in spec.shapes] + list(build_objects(getattr(spec, "sdf", ())))
+    parts = [twin_of_shape(s) for s in spec.shapes if s.casts_shadows] + list(build_objects(getattr(spec, "sdf", ())))
     return Union(*parts)
 
 
