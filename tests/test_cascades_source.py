@@ -151,3 +151,71 @@ def test_the_filter_keeps_its_texels_or_its_world_size_per_cascade(outdoor, monk
     sel = np.asarray(sel).reshape(-1)
     assert np.array_equal(v_tex[sel == 0], v_world[sel == 0])
     assert np.abs(v_tex - v_world)[sel >= 1].max() > 0.05
+
+
+# ----------------------------------------------------------------------------- beyond C_N (Code A.14)
+
+BOXES = [{"name": f"b{i}", "type": "cube", "translate": [x, 0.3, -z], "scale": 0.3}
+         for i, (x, z) in enumerate([(-1.0, 5.5), (0.5, 6.5), (-0.5, 7.5), (1.0, 8.5)])]
+
+
+def test_points_beyond_the_last_split_take_the_last_cascade(mitsuba_backend):
+    """Code A.14 (blending branch): i == MAX_CASCADES_NUM − 1 takes every point past the splits.
+    With C_N = 5 m the boxes at 5.5–8.5 m still cast the shadows the last map holds, where a
+    range to 30 m puts them too; a point outside that map stays lit."""
+    from shadowlab.render.gbuffer import vec_numpy
+    from shadowlab.render.lightview import FrustumSlice
+    cam = {**CAM, "far": 30.0}
+    sun = {**SUN, "direction": [0.3, -1.0, 0.2]}
+    frame = frame_from(scene("beyond", camera=cam, resolution=(64, 48), lights=[sun], shapes=[floor(30.0)] + BOXES))
+    csm = base.get("csm")
+    p = {"cascades": 2, "shadow_near": 0.5, "blend": 0.0, "filter": "hard", "snap": False}
+    short = csm.render(frame, {**p, "shadow_far": 5.0})
+    z = frame.camera.view_depth(vec_numpy(frame.gbuffer.p))
+    beyond = frame.gbuffer.valid.numpy() & (z > 5.0)
+    sel = np.asarray(short.aovs["sun.cascade"]).reshape(-1)
+    assert np.all(sel[beyond] == 1)
+    v = short.visibility["sun"].numpy()
+    last = FrustumSlice(*short.stats["lights"]["sun"]["maps"][-1]["split"], 2.0, False, "sphere", "light")
+    inside = frame.light_view("sun", res=256, fit=last).lookup(frame.gbuffer.p)["inside"].numpy()
+    assert (beyond & ~inside).sum() > 100 and np.all(v[beyond & ~inside] == 1.0)
+    dark = beyond & inside & (v < 0.5)
+    assert dark.sum() > 40                                           # shadows go on past C_N
+    full = csm.render(frame, {**p, "shadow_far": 30.0}).visibility["sun"].numpy()
+    assert np.mean(full[dark] < 0.5) > 0.8                           # where a longer range puts them too
+
+
+# ----------------------------------------------------------------------------- rotation (§4.2)
+
+def test_the_sphere_fit_does_not_change_when_the_camera_turns_about_its_position(mitsuba_backend):
+    """§4.2: the slice's bounding sphere is invariant under rotation of the camera: turned about
+    its position, every cascade keeps its map's half size (its texel size: with and without
+    snapping), its light frame and near plane, and its sphere centre c = p + λ·r·d keeps its
+    distance to the camera (the sphere turns with the view); the box fit's size changes."""
+    from outdoor_scene import CAMERA
+    from scene_builder import build_scene
+    from shadowlab.render.lightview import FrustumSlice, projection
+    from shadowlab.scene.lights import forward
+    got = {}
+    for yaw in (0.0, 35.0, 120.0):
+        a = math.radians(yaw)
+        t = np.subtract(CAMERA["target"], CAMERA["position"])
+        t = [t[0] * math.cos(a) - t[2] * math.sin(a), t[1], t[0] * math.sin(a) + t[2] * math.cos(a)]
+        sc = build_scene({**OUTDOOR, "camera": {**CAMERA, "target": list(np.add(CAMERA["position"], t))}})
+        light = sc.lights[0]
+        d = np.array(forward(light))
+        d /= np.linalg.norm(d)
+        for bound in ("sphere", "box"):
+            for snap in (False, True):
+                f = projection(light, sc, 256, FrustumSlice(2.0, 9.0, 2.0, snap, bound, "light")).faces[0]
+                c = np.array(f.origin) + 2.0 * f.scale * (255.0 / 256.0 if snap else 1.0) * d
+                got.setdefault((bound, snap), []).append(
+                    (f.scale, f.near, np.ravel(f.R), np.linalg.norm(c - CAMERA["position"])))
+    for snap in (False, True):
+        s0, n0, R0, c0 = got[("sphere", snap)][0]
+        for s, n, R, c in got[("sphere", snap)][1:]:
+            assert s == s0 and n == n0 and np.array_equal(R, R0)
+            if not snap:                                             # snapping moves c across d by < 1 texel
+                assert c == pytest.approx(c0, rel=1e-9)
+    box = [g[0] for g in got[("box", False)]]
+    assert abs(box[1] / box[0] - 1.0) > 1e-3                         # the box's half size changes

@@ -615,12 +615,19 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     o_np, d_np = texel_rays(proj)
     # start past the light's own surface: spheres at their radius, planar lights just in front
     start = light.radius * 1.001 if light.kind in ("sphere", "point") else 1e-5 * scene.radius
+    clip = False
     if proj.faces[0].ortho:  # orthographic rays start on the near plane or at the light's position
         start = min(0.0, proj.faces[0].near)
-        if isinstance(proj.fit, FrustumSlice) and proj.fit.near_plane == "pancake":  # from the nearest caster:
-            f0 = proj.faces[0]                       # its depth is clamped onto the near plane
+        # a FrustumSlice whose near plane is the light's: rays start before the nearest caster, a plane
+        # fixed in the world (from the near plane, which moves with the camera, hits would shift by
+        # float rounding and stable cascades shimmer); "pancake" clamps a hit before the near plane
+        # onto it (_texel_depths), "light" casts such a texel again from the near plane (clips it)
+        clip = isinstance(proj.fit, FrustumSlice) and proj.fit.near_plane == "light"
+        if isinstance(proj.fit, FrustumSlice) and proj.fit.near_plane != "caster":
+            f0 = proj.faces[0]
             start = min(start, float(np.min((_corners(scene) - np.array(f0.origin)) @ np.array(f0.R[2])))
                         - 1e-3 * scene.radius)
+    near_start = min(0.0, proj.faces[0].near)
     o_np = o_np + d_np * start
     ray = mi.Ray3f(mi.Point3f(*[o_np[:, k].astype(np.float32) for k in range(3)]),
                    mi.Vector3f(*[d_np[:, k].astype(np.float32) for k in range(3)]))
@@ -632,6 +639,8 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     tr = {}
     if table is None:
         si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha)
+        if proj.faces[0].ortho and clip:
+            si = _clip_near(scene, proj, si, o_np - d_np * start + d_np * near_start, d_np, backface, own_ptr, alpha)
     else:
         si, tau, first = _cast_translucent(scene.mi_scene, ray, backface, own_ptr, alpha, table)
         hf, sf, dqf, zf = _texel_depths(proj, first, bits)
@@ -657,6 +666,20 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     return LightView(light=light, proj=proj, bits=bits, backface=backface, depth=dq.reshape(shp),
                      z=zq.astype(np.float32).reshape(shp), slope=slope.astype(np.float32).reshape(shp),
                      hit=h.reshape(shp), **lay, **tr)
+
+
+def _clip_near(scene, proj, si, o_near, d_np, backface, own_ptr, alpha):
+    """``si`` where its hit lies past the near plane of orthographic ``proj``; elsewhere the first
+    hit of the texel's ray from the near plane (points ``o_near``): the casters nearer to the light
+    are clipped, as a rasterizer's depth clip does."""
+    f0 = proj.faces[0]
+    o, d = mi.Point3f(*f0.origin), mi.Vector3f(*f0.R[2])
+    before = si.is_valid() & (dr.dot(si.p - o, d) < f0.near)
+    if not dr.any(before):
+        return si
+    ray = mi.Ray3f(mi.Point3f(*[o_near[:, k].astype(np.float32) for k in range(3)]),
+                   mi.Vector3f(*[d_np[:, k].astype(np.float32) for k in range(3)]))
+    return dr.select(before, cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha), si)
 
 
 def _texel_depths(proj, si, bits):

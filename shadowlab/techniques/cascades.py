@@ -24,8 +24,8 @@ low loses casters, one too high spends depth precision (§2.2); ``pancake``: the
 but such a caster is clamped onto it (depth 0) instead of clipped, so λ sets only the precision;
 ``caster`` (shadowlab's former default): the depth range starts at the scene's nearest caster
 toward the light, so λ changes nothing (fit then leaves ``pull`` out). Measured against the truth
-(``docs/families/cascades.md``), ``light`` is the closest of the three on ``street`` and
-``boulevard``: the tighter depth range makes the depth-format biases smaller in world units;
+(``docs/families/cascades.md``), the three agree at the default λ = 2 on ``street`` and
+``boulevard`` (no caster beyond p, 32-bit maps), so the default is the source's ``light``;
 ``fit`` = ``sphere`` (the slice's bounding sphere, radius rounded up to 1/8 m as Code A.13 does:
 invariant under camera rotation) or ``box`` (the slice corners' light-space bounding square:
 tighter, but it changes with every camera move, so shadow edges shimmer); ``snap`` moves the
@@ -36,9 +36,12 @@ with N = 1 ``csm`` is then ``hard`` (same filter) bit for bit.
 
 **Selection** (§4.4, Code A.14): ``interval`` (PSSM): a point at view depth z (under
 ``frame.camera``, so frame 0's points can be evaluated with frame t's camera) takes the first
-cascade i with z < C_{i+1}; points beyond C_N are unshadowed (visibility 1, cascade −1), as in
-Code A.14, where no cascade matches. ``map``: the first, i.e. finest, cascade whose map holds the
-point (inside its [−1, 1]² and depth range); a point in no map is unshadowed.
+cascade i with z < C_{i+1}; points beyond C_N take the last cascade, as Code A.14's blending
+branch does (``i == MAX_CASCADES_NUM − 1``), so a shadow its map holds does not stop at C_N, and
+a point outside that map is unshadowed (the source's branch without blending leaves such points
+at their initial shadow factor; one rule for both keeps ``blend`` from deciding it).
+``map``: the first, i.e. finest, cascade whose map holds the point (inside its [−1, 1]² and
+depth range); a point in no map is unshadowed.
 
 **Blending** (Code A.14, interval selection only: Code A.14's blending branch selects by depth):
 around each split C = C_{i+1} but the last, in the band [(1 − b)·C, (1 + b)·C], b = ``blend``,
@@ -72,7 +75,7 @@ cascade i, with t_i its texel's world size:
 Measured against the truth (``docs/families/cascades.md``), ``texel`` has the lower penumbra error
 on ``street`` and ``boulevard`` in 14 of 15 (scene, filter) cases: with ``world`` a far cascade's
 taps shrink to a fraction of its coarse texel (softness·t_0/t_i), which leaves its staircase edge
-hard, while a kernel of whole texels smooths it; the whole-image RMSE differs by at most 0.0023.
+hard, while a kernel of whole texels smooths it; the whole-image RMSE differs by at most 0.0022.
 
 **Cost**: each point is evaluated only in the cascade it selects (two in a blend band): per
 cascade the points are compacted (``dr.compress``) into a sub-G-buffer, evaluated, and scattered
@@ -92,7 +95,7 @@ the light stretches it is not included.
 Stats per light: ``maps`` (per cascade: the map's resolution, depth bits, near, far, texels,
 ``split`` [C_i, C_{i+1}], ``texel_world``, ``fraction`` of the shaded points that select it),
 ``cascade_fraction`` (the same list), ``blended_fraction`` (points in a band),
-``unshadowed_fraction`` (beyond C_N or in no map); globally ``splits``, ``cascades``,
+``unshadowed_fraction`` (no cascade: map selection and no map holds the point); globally ``splits``, ``cascades``,
 ``filter``, ``shadow_map_texels``.
 
 Not differentiable: the splits, the blend band and the pull-back move maps and selections by
@@ -194,14 +197,14 @@ def shadow_range(camera, scene, values: dict) -> tuple:
 
 
 def select_interval(z, C, blend: float, b=None):
-    """Interval selection with Code A.14's blend bands (Dr.Jit): (cascade index Int32, −1 beyond
-    C_N; weight of cascade index + 1). ``C``: the split depths as floats or opaque Dr.Jit scalars,
-    ``blend``: b (a float; 0 = none), ``b``: the same as the opaque scalar the kernel reads
-    (default ``blend``)."""
+    """Interval selection with Code A.14's blend bands (Dr.Jit): (cascade index Int32, the last
+    one, N − 1, beyond C_N as in Code A.14; weight of cascade index + 1). ``C``: the split depths
+    as floats or opaque Dr.Jit scalars, ``blend``: b (a float; 0 = none), ``b``: the same as the
+    opaque scalar the kernel reads (default ``blend``)."""
     blend_on = blend > 0
     blend = blend if b is None else b
     N = len(C) - 1
-    sel = dr.select(z < C[N], mi.Int32(N - 1), mi.Int32(-1))
+    sel = dr.full(mi.Int32, N - 1, dr.width(z))          # beyond C_N too: the last cascade
     w = dr.zeros(mi.Float, dr.width(z))
     for i in range(N - 2, -1, -1):        # downwards: the first i whose band holds z wins
         c = C[i + 1]
@@ -290,7 +293,7 @@ CSM_PARAMS = (
     Param("shadow_near", 0.0, "float", 0.0, 1e5, "m (view depth)", False, source="[Buljan 2020, §4.1]",
           doc="n = C_0, near end of the shadowed range; 0 = the camera's near clip (within the scene's depth range)"),
     Param("shadow_far", 0.0, "float", 0.0, 1e5, "m (view depth)", False, source="[Buljan 2020, §4.1]",
-          doc="f = C_N, far end of the shadowed range (beyond it: unshadowed); 0 = the camera's far clip "
+          doc="f = C_N, far end of the split range (beyond it: the last cascade's map); 0 = the camera's far clip "
               "(within the scene's depth range)"),
     Param("pull", 2.0, "float", 0.25, 16.0, "slice radii", False, source="[Buljan 2020, §4.2, Code A.13]",
           doc="pull-back λ of the light position p = c − λ·r·d from the slice centroid (Code A.13's DistanceFactor)"),
