@@ -82,6 +82,17 @@ ForceOpt = typer.Option(False, "--force", help="Write into an existing --out dir
                         "create (only the report's own files are replaced).")
 
 
+def _choose_references(value):
+    """``--references DIR``: the reference store of this run (shadowlab.reference.location)."""
+    if value is not None:
+        from .reference.location import choose
+        choose(value)
+    return value
+
+
+ReferencesOpt = typer.Option(None, "--references", callback=_choose_references, metavar="DIR",
+                             help="The reference store (default: $SHADOWLAB_REFERENCES, else `references` in "
+                             "[tool.shadowlab] of pyproject.toml or in shadowlab.toml, else ./references).")
 FrameOpt = typer.Option(None, "--frame", help="Frame N of the scene's camera path (0..frames-1; a scene without "
                         "a path has only frame 0).")
 
@@ -182,6 +193,7 @@ def reference(
     workers: Optional[int] = WorkersOpt,
     scheduler: Optional[str] = SchedulerOpt,
     variant: Optional[str] = VariantOpt,
+    references: Optional[str] = ReferencesOpt,
 ):
     """Render and store the Mitsuba ground truth of scenes (of each frame of a camera path: --frames)."""
     from .cluster import open_executor
@@ -226,8 +238,8 @@ def _reference_done(path, meta):
 
 
 @app.command()
-def references():
-    """List the stored references."""
+def references(store: Optional[str] = ReferencesOpt):
+    """List the stored references (and the built-in scenes' committed ones the store does not hold)."""
     from .reference.store import list_references
     for r in list_references():
         m = r["meta"]
@@ -235,6 +247,7 @@ def references():
         se = f"{se:.4f}" if isinstance(se, (int, float)) and not isinstance(se, bool) else "   n/a"
         res = r["resolution"] + ("" if r.get("frame") is None else f" f{r['frame']}")
         typer.echo(f"{r['scene']:18s} {res:10s} worst se {se}  seed {m.get('seed')}  {r['path']}"
+                   + ("  (built-in, read-only)" if r.get("builtin") else "")
                    + "".join(f"\n{'':18s} {p}" for p in r["status"]))
 
 
@@ -274,7 +287,7 @@ def compare(scene: str = typer.Argument(..., help="Built-in scene name or path t
             frames: Optional[str] = typer.Option(None, "--frames", help="Frames A:B of the camera path, both ends "
                                                  "included: a report per frame in OUT/frame_NNNN/ and a top-level "
                                                  "technique × frame table with the shimmer (two frames or more)."),
-            variant: Optional[str] = VariantOpt):
+            variant: Optional[str] = VariantOpt, references: Optional[str] = ReferencesOpt):
     """Compare techniques with the ground truth; write index.html, summary.md, metrics.json."""
     from .fit.preset import load as load_preset
     out = out or f"reports/{Path(scene).stem}"
@@ -297,7 +310,7 @@ def _applicable(scene: str) -> list[str]:
 
 @app.command()
 def demo(out: str = typer.Option("reports/demo", "--out", "-o"), force: bool = ForceOpt,
-         variant: Optional[str] = VariantOpt):
+         variant: Optional[str] = VariantOpt, references: Optional[str] = ReferencesOpt):
     """Compare every registered technique that renders the built-in `contact` scene and print the table."""
     _compare("contact", _applicable("contact"), [], out, None, variant, force=force)
 
@@ -365,6 +378,7 @@ def fit(
     workers: Optional[int] = WorkersOpt,
     scheduler: Optional[str] = SchedulerOpt,
     variant: Optional[str] = VariantOpt,
+    references: Optional[str] = ReferencesOpt,
 ):
     """Fit technique parameters to the ground truth; write DIR/fit.json, index.html, summary.md, preset.toml.
     Several scenes: one preset for all of them, each scene's loss beside it; each evaluation is one job
@@ -404,7 +418,7 @@ def sweep(scenes_: List[str] = typer.Argument(..., metavar="SCENE...", help="Bui
                                             "reports/sweep/TECHNIQUE-PARAM)."),
           force: bool = ForceOpt,
           workers: Optional[int] = WorkersOpt, scheduler: Optional[str] = SchedulerOpt,
-          variant: Optional[str] = VariantOpt):
+          variant: Optional[str] = VariantOpt, references: Optional[str] = ReferencesOpt):
     """Every metric of a technique against one parameter, per scene; write sweep.json, summary.md, index.html."""
     from .pipeline import parse_resolution
     from .sweep import default_out as sweep_default_out
@@ -487,6 +501,7 @@ def ingest(
     ),
     force: bool = ForceOpt,
     variant: Optional[str] = VariantOpt,
+    references: Optional[str] = ReferencesOpt,
 ):
     """Compare an image rendered elsewhere with the stored ground truth; write a report."""
     from .exchange.ingest import default_out

@@ -770,8 +770,11 @@ def scene_spec(scene: str, resolution: tuple | None = None, frame: int | None = 
 
 
 def builtin_dir() -> Path:
-    """Directory of the built-in scenes (``scenes/`` at the repository top level)."""
-    return Path(__file__).resolve().parents[2] / "scenes"
+    """Directory of the built-in scenes and their textures: package data of an installed shadowlab
+    (``shadowlab/builtin_scenes`` in a wheel), else ``scenes/`` at the top of the source checkout."""
+    package = Path(__file__).resolve().parents[1]
+    installed = package / "builtin_scenes"
+    return installed if installed.is_dir() else package.parent / "scenes"
 
 
 def builtin_names() -> list[str]:
