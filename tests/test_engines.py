@@ -34,6 +34,8 @@ SIZE = (112, 84)
 #: the engine's shadow set against acne, for the comparison with ``hard`` (three.js units:
 #: bias in shadow-map depth, normalBias in metres, the shadow camera's planes in metres)
 AGAINST_ACNE = {"bias": -0.0005, "normalBias": 0.02, "near": 1.0, "far": 20.0, "mapSize": 1024}
+#: the same for Babylon.js (its bias is added to the receiver's depth: positive against acne)
+BABYLON_AGAINST_ACNE = {"bias": 0.002, "normalBias": 0.02, "mapSize": 1024}
 
 
 @pytest.fixture(scope="module")
@@ -75,6 +77,36 @@ def test_three_basic_agrees_with_hard_at_interior_pixels(engine, contact):
     st = three.stats["engine"]
     assert st["package"] == "three" and st["version"] == "0.187.0" and st["shadow_type"] == "basic"
     assert three.stats["lights"]["key"]["maps"][0]["resolution"] == 1024
+
+
+def test_babylon_unfiltered_map_agrees_with_hard_at_interior_pixels(engine, contact):
+    from shadowlab.techniques import get
+    hard = get("hard").render(contact, {})
+    babylon = get("babylon:basic").render(contact, BABYLON_AGAINST_ACNE)
+    umbra, lit, n_umbra, n_lit = _interior_agreement(contact, babylon, hard, "key")
+    assert n_umbra >= 30 and n_lit >= 2000, (n_umbra, n_lit)
+    assert umbra >= 0.97 and lit >= 0.995, (umbra, lit)        # measured 1.0 and 0.9996
+    _, lit0, _, _ = _interior_agreement(contact, get("babylon:basic").render(contact, {}), hard, "key")
+    assert lit0 < 0.8, lit0                                     # Babylon's default bias 5e-5: acne (0.53)
+    assert babylon.stats["engine"]["package"] == "@babylonjs/core"
+
+
+def test_one_babylon_page_serves_every_shadow_type(engine, contact):
+    """The Babylon page loads once per scene (half its cost is loading the engine's modules);
+    each shadow type is a new generator on it. Filtered types give fractional visibilities."""
+    from shadowlab.techniques import get
+    get("babylon:basic").render(contact, BABYLON_AGAINST_ACNE)
+    key = engine.session().key
+    for name in ("babylon:pcf", "babylon:poisson", "babylon:esm", "babylon:esm_blur", "babylon:esm_close",
+                 "babylon:pcss"):
+        v = contact.image(get(name).render(contact, {"bias": 0.002}).visibility["key"])
+        assert engine.session().key == key, name
+        assert 0.0 <= v.min() and v.max() <= 1.0, name
+        # every type but PCSS shows an umbra here (Babylon's contact hardening on this spot light stays
+        # above 0.58 at its defaults: an open question, see docs/engines.md)
+        assert v.min() < 0.5 or name == "babylon:pcss", (name, v.min())
+    pcf = contact.image(get("babylon:pcf").render(contact, BABYLON_AGAINST_ACNE).visibility["key"])
+    assert np.mean((pcf > 0.02) & (pcf < 0.98)) > 0.002
 
 
 def test_one_browser_evaluates_many_points_and_filters_in_between(engine, contact):
@@ -131,6 +163,7 @@ def test_features_three_cannot_express_are_refused_by_name(mitsuba_backend):
     assert "VSMShadowMap has no point-light shadows" in get("three:vsm").unsupported(load_spec(resolve("many_lights")))
     assert "directional lights only" in get("three:csm").unsupported(load_spec(resolve("contact")))
     assert get("three:csm").unsupported(load_spec(resolve("street"))) is None
+    assert "directional lights only" in get("babylon:csm").unsupported(load_spec(resolve("contact")))
 
 
 def test_cli_exit_codes_for_engine_input(tmp_path):

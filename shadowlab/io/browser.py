@@ -3,7 +3,7 @@
 The browser half of shadowlab (the report's page test, the engines of ``shadowlab.techniques``'s
 ``engine_*`` modules) runs Debian's ``chromium`` (which ``make setup`` installs) headless and talks
 to it with ``--remote-debugging-pipe``: NUL-terminated JSON messages on file descriptors 3 and 4
-[Chrome DevTools Protocol], so no websocket client and nothing beyond the standard library.
+[Chrome DevTools 2026], so no websocket client and nothing beyond the standard library.
 ``webgl=True`` adds ``--use-angle=swiftshader --enable-unsafe-swiftshader``: WebGL 2 on the CPU
 (ANGLE on SwiftShader), so real engines render without a GPU.
 
@@ -198,6 +198,7 @@ class _Handler(http.server.BaseHTTPRequestHandler):
     """GET only: ``/<prefix>/<path>`` from the server's ``roots`` (a prefix -> directory), or the
     bytes the server ``blobs`` hold under the path; nothing outside a root is served."""
 
+    protocol_version = "HTTP/1.1"         # keep-alive: a page of thousands of ES modules loads in seconds
     TYPES = {".js": "text/javascript", ".mjs": "text/javascript", ".html": "text/html", ".json": "application/json",
              ".glb": "model/gltf-binary", ".wasm": "application/wasm"}
 
@@ -230,7 +231,7 @@ class LocalServer:
     def __init__(self, roots: dict):
         self.httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Handler)
         self.httpd.roots = {k: Path(v) for k, v in roots.items()}
-        self.httpd.blobs = {}
+        self.httpd.blobs = {"/favicon.ico": b""}
         self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}"
         self.thread = threading.Thread(target=self.httpd.serve_forever, name="shadowlab-http", daemon=True)
         self.thread.start()

@@ -87,7 +87,7 @@ class Session:
             self.browser.open(f"{self.server.url}/page/{html}", timeout=LOAD_TIMEOUT)
             ready = self.browser.js("new Promise((ok) => { const t0 = Date.now(); (function wait() { "
                                     "if (window.shadowlab && window.shadowlab.ready) ok(true); "
-                                    "else if (Date.now() - t0 > 20000) ok(false); else setTimeout(wait, 20); })(); })",
+                                    "else if (Date.now() - t0 > 110000) ok(false); else setTimeout(wait, 20); })(); })",
                                     timeout=LOAD_TIMEOUT)
             if not ready:
                 raise browser_mod.BrowserError("the page's script did not start")
@@ -178,6 +178,8 @@ class EngineTechnique(Technique):
     engine: str = ""
     page_html: str = ""
     shadow_type: str = ""
+    #: False: one loaded page serves every shadow type of the engine (the type is sent with each render)
+    page_per_type: bool = True
 
     def unsupported(self, spec) -> str | None:
         return needs_mitsuba_geometry(self.name, spec) or (
@@ -194,7 +196,8 @@ class EngineTechnique(Technique):
         gb = frame.gbuffer
         W, H = gb.width * gb.ss, gb.height * gb.ss
         spec = frame.scene.spec
-        key = (self.page_html, self.shadow_type, spec.name, spec.digest(), W, H, id(frame))
+        key = (self.page_html, self.shadow_type if self.page_per_type else "", spec.name, spec.digest(), W, H,
+               id(frame))
         if key == sess.key:
             return sess.info
         with tempfile.TemporaryDirectory(prefix="shadowlab-glb-") as d:
@@ -203,7 +206,8 @@ class EngineTechnique(Technique):
         lights = []
         for entry, l in zip(manifest["lights"], frame.lights):
             lights.append({"name": l.name, "node": entry["node"], "kind": l.kind, "type": entry["type"],
-                           "direction": [float(x) for x in lights_mod.forward(l)]})
+                           "direction": [float(x) for x in lights_mod.forward(l)],
+                           "position": [float(x) for x in (l.position or (0.0, 0.0, 0.0))]})
         cfg = {"type": self.shadow_type, "width": W, "height": H, "camera": camera_config(frame), "lights": lights}
         return sess.page(key, self.page_html, cfg, glb)
 
@@ -216,7 +220,7 @@ class EngineTechnique(Technique):
         sess = session()
         info = self._load(frame, sess)
         t0 = time.perf_counter()
-        out = sess.render(self.engine_values(values))
+        out = sess.render({**self.engine_values(values), "__type": self.shadow_type})
         wall = time.perf_counter() - t0
         gb = frame.gbuffer
         W, H = gb.width * gb.ss, gb.height * gb.ss

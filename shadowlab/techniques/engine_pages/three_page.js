@@ -218,4 +218,8 @@ function render(p) {
   return { lights: out, maps, ms: performance.now() - t0 };
 }
 
-window.shadowlab = { load, render, ready: true, S };
+// a rejected promise's value shown as text (Runtime.evaluate reports a bare rejection without it)
+const said = (f) => async (arg) => {
+  try { return await f(arg); } catch (e) { throw new Error((e && (e.stack || e.message)) || String(e)); }
+};
+window.shadowlab = { load: said(load), render: said(render), ready: true, S };
