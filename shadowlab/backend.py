@@ -24,7 +24,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .errors import EnvironmentProblem, InputError
-from .libllvm import _LIB_DIRS, FIX, MIN_LLVM, find_libllvm, llvm_version
+from .libllvm import LIB_DIRS, FIX, MIN_LLVM, find_libllvm, llvm_version
 
 __all__ = ["init", "probe", "machine_info", "find_libllvm", "llvm_version", "DEFAULT_VARIANT", "SUPPORTED_VARIANTS"]
 
@@ -105,7 +105,7 @@ def init(variant: str | None = None, threads: int | None = None, check: bool = T
         else:
             lib = find_libllvm()
             if lib is None:
-                older = [p for d in _LIB_DIRS for p in glob.glob(os.path.join(d, "libLLVM*.so*"))]
+                older = [p for d in LIB_DIRS for p in glob.glob(os.path.join(d, "libLLVM*.so*"))]
                 have = f" (found only {', '.join(sorted(set(older)))})" if older else ""
                 raise EnvironmentProblem(f"no libLLVM >= {MIN_LLVM} found for Dr.Jit's LLVM backend{have}; {FIX}")
     if check:

@@ -23,7 +23,7 @@ MIN_LLVM = 16
 FIX = ("install a libLLVM >= 16: on Debian/Ubuntu run `sudo apt-get install libllvm19` "
        "(or `make setup`, which does it), or point DRJIT_LIBLLVM_PATH at a libLLVM.so >= 16")
 
-_LIB_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib",
+LIB_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib",
              "/usr/local/lib", "/opt/homebrew/opt/llvm/lib", "/usr/local/opt/llvm/lib")
 
 def llvm_version(path: str) -> int | None:
@@ -35,7 +35,7 @@ def llvm_version(path: str) -> int | None:
 def find_libllvm(min_version: int = MIN_LLVM) -> str | None:
     """Newest libLLVM >= ``min_version`` in the usual library directories, or None."""
     found = []
-    for d in _LIB_DIRS:
+    for d in LIB_DIRS:
         for p in glob.glob(os.path.join(d, "libLLVM*.so*")) + glob.glob(os.path.join(d, "libLLVM*.dylib")):
             v = llvm_version(p)
             if v is not None and v >= min_version:

@@ -143,7 +143,7 @@ def truth_target(truth, target: str = "shaded", light: str | None = None) -> Tar
     return Target("shaded", np.asarray(truth.shaded, np.float64), var, mask, pen, None, lights)
 
 
-def _as_image(name: str, a, kind: str, hw=None) -> np.ndarray:
+def as_image(name: str, a, kind: str, hw=None) -> np.ndarray:
     arr = np.asarray(a)
     if arr.dtype.kind not in "fiu":
         raise InputError(f"{name} must be a numeric image, got dtype {arr.dtype}")
@@ -210,7 +210,7 @@ def _budget_metrics(cand, tgt: Target, keys, visibility) -> dict:
     if set(keys) & set(TECHNIQUE_SHADED_METRICS):
         # the same numbers as pipeline.technique_metrics (the `compare` report)
         out.update(pooled_visibility({
-            n: (_as_image(f"candidate visibility of light {n!r}", visibility[n], "visibility", tv.shape), tv, lit)
+            n: (as_image(f"candidate visibility of light {n!r}", visibility[n], "visibility", tv.shape), tv, lit)
             for n, (tv, lit) in tgt.lights.items()})[1])
     return out
 
@@ -257,9 +257,9 @@ def check(candidate, reference, thresholds, *, target: str = "shaded", light: st
                              "Truth; do not pass them with a Truth reference")
     else:
         kind = target
-        ref = _as_image("reference image", reference, kind)
+        ref = as_image("reference image", reference, kind)
         hw = ref.shape[:2]
-        rv = None if reference_var is None else np.maximum(_as_image("reference variance", reference_var, kind, hw), 0)
+        rv = None if reference_var is None else np.maximum(as_image("reference variance", reference_var, kind, hw), 0)
         vm = _mask("valid", valid, hw)
         if penumbra is None and kind == "visibility":
             pen = penumbra_mask(ref, vm)
@@ -267,9 +267,9 @@ def check(candidate, reference, thresholds, *, target: str = "shaded", light: st
             pen = None if penumbra is None else _mask("penumbra", penumbra, hw) & vm
         tgt = Target(kind, ref, rv, vm, pen, light, dof=reference_dof)
     hw = tgt.image.shape[:2]
-    cand = _as_image("candidate image", candidate, tgt.kind, hw)
+    cand = as_image("candidate image", candidate, tgt.kind, hw)
     cvar = (
-        None if candidate_var is None else np.maximum(_as_image("candidate variance", candidate_var, tgt.kind, hw), 0)
+        None if candidate_var is None else np.maximum(as_image("candidate variance", candidate_var, tgt.kind, hw), 0)
     )
     res = GateResult(name=name, target=tgt.kind if tgt.light is None else f"visibility:{tgt.light}")
     res.images = {"candidate": cand, "reference": tgt.image, "error": cand - tgt.image, "pvalue": None,

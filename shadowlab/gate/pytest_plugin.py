@@ -47,7 +47,7 @@ import pytest
 from ..errors import InputError
 from ..io.exr import read_exr, split_rgb, write_exr
 from ..io.jsonio import read_json, write_json_atomic
-from .check import GateResult, _as_image, check
+from .check import GateResult, as_image, check
 from .html import write_page
 from .thresholds import from_keywords
 
@@ -94,7 +94,7 @@ class ShadowlabGate:
         self.results_dir = request.config.getoption("--shadowlab-results")
         self.pending = []                   # (exr, json, channels, meta): written when the test passed
 
-    def _write_pending(self):
+    def write_pending(self):
         """Write the baselines of this test (fixture teardown: only if its call phase passed)."""
         cfg = self.request.config
         rep = self.request.node.stash.get(_call_key, None)
@@ -123,11 +123,11 @@ class ShadowlabGate:
         arr = np.asarray(image)
         if target is None:
             target = "shaded" if arr.ndim == 3 and arr.shape[-1] == 3 else "visibility"
-        img = _as_image(f"shadowlab_gate image {name!r}", arr, target)
+        img = as_image(f"shadowlab_gate image {name!r}", arr, target)
         var = (
             None
             if variance is None
-            else _as_image(f"shadowlab_gate variance {name!r}", variance, target, img.shape[:2])
+            else as_image(f"shadowlab_gate variance {name!r}", variance, target, img.shape[:2])
         )
         if var is not None and (var < 0).any():
             raise InputError(f"shadowlab_gate: variance of {name!r} has negative values")
@@ -205,7 +205,7 @@ def shadowlab_gate(request):
     gate = ShadowlabGate(request)
     yield gate
     if gate.pending:
-        gate._write_pending()
+        gate.write_pending()
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):

@@ -39,7 +39,7 @@ def compare_visibility(vis, truth, valid=None) -> dict[str, float]:
     """
     x, t = np.asarray(vis, dtype=np.float64), np.asarray(truth, dtype=np.float64)
     pen = _mk.penumbra_mask(t, valid)
-    valid_m = _mk._valid(valid, pen.shape)
+    valid_m = _mk.valid_of(valid, pen.shape)
     n_valid = int(np.count_nonzero(valid_m))
     return {
         "rmse": _im.rmse(x, t, valid_m),
@@ -72,7 +72,7 @@ def pooled_visibility(lights) -> tuple[dict, dict]:
     per_light, leak, over = {}, [0, 0], [0, 0]
     for name, (vis, truth, valid) in lights.items():
         per_light[name] = compare_visibility(vis, truth, valid)
-        x = _mk._scalar_vis("visibility", vis)
+        x = _mk.scalar_vis("visibility", vis)
         umbra, lit = _mk.umbra_mask(truth, valid), _mk.lit_mask(truth, valid)
         leak[0] += int(np.count_nonzero(umbra & (x > 0.5)))
         leak[1] += int(np.count_nonzero(umbra))
@@ -102,12 +102,12 @@ def compare_shaded(img, truth, penumbra=None, valid=None) -> dict[str, float]:
     >>> m["rmse"], m["ssim"], m["flip"], m["delta_e2000"], m["psnr"]
     (0.0, 1.0, 0.0, 0.0, inf)
     """
-    t, r = _im._pair(img, truth)
+    t, r = _im.image_pair(img, truth)
     shape2d = t.shape[:2]
-    valid_m = _im._mask(valid, shape2d)
+    valid_m = _im.mask_of(valid, shape2d)
     if valid_m is None:
         valid_m = np.ones(shape2d, dtype=bool)
-    pen = _im._mask(penumbra, shape2d)
+    pen = _im.mask_of(penumbra, shape2d)
     pen = np.zeros(shape2d, dtype=bool) if pen is None else (pen & valid_m)
 
     out: dict[str, float] = {}
@@ -117,14 +117,14 @@ def compare_shaded(img, truth, penumbra=None, valid=None) -> dict[str, float]:
     check_finite("reference image", r)
     peak = float(np.max(r[valid_m]))
     maps = {
-        "ssim": _im._ssim_map(t, r, None),
-        "flip": _im._flip_map(t, r),
-        "delta_e2000": _im._delta_e2000_map(t, r),
+        "ssim": _im.ssim_kernel(t, r, None),
+        "flip": _im.flip_kernel(t, r),
+        "delta_e2000": _im.delta_e2000_kernel(t, r),
     }
     for suffix, m in (("", valid_m), ("_penumbra", pen)):
         out["rmse" + suffix] = _im.rmse(t, r, m)
         out["mae" + suffix] = _im.mae(t, r, m)
         out["psnr" + suffix] = _im.psnr(t, r, m, peak=peak)
         for name, mp in maps.items():
-            out[name + suffix] = _im._masked_mean(mp, m)
+            out[name + suffix] = _im.masked_mean(mp, m)
     return {k: out[k] for k in SHADED_KEYS}

@@ -43,7 +43,8 @@ _LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
 # ----------------------------------------------------------------------------- input handling
-def _pair(test, ref, *, what: str = "image"):
+def image_pair(test, ref, *, what: str = "image"):
+    """``test`` and ``ref`` as float64 arrays of one shape (H×W or H×W×C); InputError naming ``what`` otherwise."""
     t = np.asarray(test, dtype=np.float64)
     r = np.asarray(ref, dtype=np.float64)
     if t.ndim == 2 and r.ndim == 3 and t.shape == r.shape[:2]:
@@ -58,7 +59,8 @@ def _pair(test, ref, *, what: str = "image"):
     return t, r
 
 
-def _mask(mask, shape2d):
+def mask_of(mask, shape2d):
+    """A boolean H×W mask (None: every pixel), checked against ``shape2d``."""
     if mask is None:
         return None
     m = np.asarray(mask)
@@ -84,15 +86,16 @@ def _empty(m) -> bool:
     return m is not None and not m.any()
 
 
-def _masked_mean(map2d: np.ndarray, m) -> float:
+def masked_mean(map2d: np.ndarray, m) -> float:
+    """Mean of a per-pixel map over the mask ``m``; NaN for an empty mask."""
     if _empty(m):
         return float("nan")
     return float(np.mean(_select(map2d, m), dtype=np.float64))
 
 
 def _prepare_pointwise(test, ref, mask):
-    t, r = _pair(test, ref)
-    m = _mask(mask, t.shape[:2])
+    t, r = image_pair(test, ref)
+    m = mask_of(mask, t.shape[:2])
     if not _empty(m):
         check_finite("test image", t, m)
         check_finite("reference image", r, m)
@@ -100,8 +103,8 @@ def _prepare_pointwise(test, ref, mask):
 
 
 def _prepare_whole(test, ref, mask=None):
-    t, r = _pair(test, ref)
-    m = _mask(mask, t.shape[:2])
+    t, r = image_pair(test, ref)
+    m = mask_of(mask, t.shape[:2])
     check_finite("test image", t)
     check_finite("reference image", r)
     return t, r, m
@@ -187,10 +190,11 @@ def ssim_map(test, ref, *, data_range: float | None = None) -> np.ndarray:
     1.0
     """
     t, r, _ = _prepare_whole(test, ref)
-    return _ssim_map(t, r, data_range)
+    return ssim_kernel(t, r, data_range)
 
 
-def _ssim_map(t: np.ndarray, r: np.ndarray, data_range) -> np.ndarray:
+def ssim_kernel(t: np.ndarray, r: np.ndarray, data_range) -> np.ndarray:
+    """The SSIM map of a checked pair (:func:`image_pair`); :func:`ssim_map` for any input."""
     if data_range is None:
         data_range = float(r.max())
         if data_range <= 0.0:
@@ -224,7 +228,7 @@ def ssim(test, ref, mask=None, *, data_range: float | None = None) -> float:
     t, r, m = _prepare_whole(test, ref, mask)
     if _empty(m):
         return float("nan")
-    return _masked_mean(_ssim_map(t, r, data_range), m)
+    return masked_mean(ssim_kernel(t, r, data_range), m)
 
 
 # ----------------------------------------------------------------------------- display exposure
@@ -264,7 +268,8 @@ def _display_pair(t: np.ndarray, r: np.ndarray, what: str):
 
 
 # ----------------------------------------------------------------------------- FLIP
-def _flip_map(t: np.ndarray, r: np.ndarray) -> np.ndarray:
+def flip_kernel(t: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The FLIP map of a checked pair (:func:`image_pair`); :func:`flip_map` for any input."""
     import flip_evaluator
 
     td, rd = _display_pair(t, r, "FLIP")
@@ -293,7 +298,7 @@ def flip_map(test, ref) -> np.ndarray:
     0.0
     """
     t, r, _ = _prepare_whole(test, ref)
-    return _flip_map(t, r)
+    return flip_kernel(t, r)
 
 
 def flip(test, ref, mask=None) -> float:
@@ -308,7 +313,7 @@ def flip(test, ref, mask=None) -> float:
     t, r, m = _prepare_whole(test, ref, mask)
     if _empty(m):
         return float("nan")
-    return _masked_mean(_flip_map(t, r), m)
+    return masked_mean(flip_kernel(t, r), m)
 
 
 # ----------------------------------------------------------------------------- CIEDE2000
@@ -319,7 +324,8 @@ def _colour():
     return colour
 
 
-def _delta_e2000_map(t: np.ndarray, r: np.ndarray) -> np.ndarray:
+def delta_e2000_kernel(t: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The CIEDE2000 map of a checked pair (:func:`image_pair`); :func:`delta_e2000_map` for any input."""
     colour = _colour()
     td, rd = _display_pair(t, r, "delta_e2000")
     srgb = colour.RGB_COLOURSPACES["sRGB"]
@@ -346,7 +352,7 @@ def delta_e2000_map(test, ref) -> np.ndarray:
     0.0
     """
     t, r, _ = _prepare_whole(test, ref)
-    return _delta_e2000_map(t, r)
+    return delta_e2000_kernel(t, r)
 
 
 def delta_e2000(test, ref, mask=None) -> float:
@@ -359,4 +365,4 @@ def delta_e2000(test, ref, mask=None) -> float:
     t, r, m = _prepare_whole(test, ref, mask)
     if _empty(m):
         return float("nan")
-    return _masked_mean(_delta_e2000_map(t, r), m)
+    return masked_mean(delta_e2000_kernel(t, r), m)

@@ -32,7 +32,8 @@ PENUMBRA_LO = 0.02
 PENUMBRA_HI = 0.98
 
 
-def _scalar_vis(name: str, vis) -> np.ndarray:
+def scalar_vis(name: str, vis) -> np.ndarray:
+    """A visibility image as float64 H×W (channels of an H×W×C image are averaged); InputError naming ``name``."""
     arr = np.asarray(vis, dtype=np.float64)
     if arr.ndim == 3:
         arr = arr.mean(axis=2)
@@ -44,7 +45,8 @@ def _scalar_vis(name: str, vis) -> np.ndarray:
     return arr
 
 
-def _valid(valid, shape) -> np.ndarray:
+def valid_of(valid, shape) -> np.ndarray:
+    """A boolean mask of ``shape`` (None: every pixel is valid)."""
     if valid is None:
         return np.ones(shape, dtype=bool)
     m = np.asarray(valid)
@@ -62,15 +64,15 @@ def _valid(valid, shape) -> np.ndarray:
 
 
 def _truth(truth, valid):
-    t = _scalar_vis("truth visibility", truth)
-    v = _valid(valid, t.shape)
+    t = scalar_vis("truth visibility", truth)
+    v = valid_of(valid, t.shape)
     check_finite("truth visibility", t, v)
     return t, v
 
 
 def _pair(vis, truth, valid):
     t, v = _truth(truth, valid)
-    x = _scalar_vis("visibility", vis)
+    x = scalar_vis("visibility", vis)
     if x.shape != t.shape:
         raise InputError(
             f"visibility has shape {x.shape} but the truth is {t.shape}; render the technique at "

@@ -84,18 +84,18 @@ def _image_grid(summary: Mapping) -> list[str]:
         return []
     e = _html.escape
 
-    def cell(f, fname, alt):
+    def thumb(f, fname, alt):
         rep = reports[str(f)]
         src = f"{os.path.dirname(rep)}/img/{fname}"
         return f'<td><a href="{e(rep)}"><img class="im thumb" src="{e(src)}" alt="{e(alt)}" title="{e(alt)}"></a></td>'
 
     p = ['<div class="wide"><table class="grid"><tr><th></th>'
          + "".join(f'<th><a href="{e(reports[str(f)])}">frame {f}</a></th>' for f in fr) + "</tr>",
-         '<tr><th class="row">truth (shaded)</th>' + "".join(cell(f, TRUTH_SHADED, f"truth frame {f}") for f in fr)
+         '<tr><th class="row">truth (shaded)</th>' + "".join(thumb(f, TRUTH_SHADED, f"truth frame {f}") for f in fr)
          + "</tr>"]
     for i, n in enumerate(summary["techniques"]):
         p.append(f'<tr><th class="row">{e(n)}<br>signed error (shaded)</th>'
-                 + "".join(cell(f, shaded_error_png(i, n), f"{n} error frame {f}") for f in fr) + "</tr>")
+                 + "".join(thumb(f, shaded_error_png(i, n), f"{n} error frame {f}") for f in fr) + "</tr>")
     p.append("</table></div>")
     return p
 
