@@ -25,6 +25,7 @@ import numpy as np
 import OpenEXR
 
 from ..errors import InputError
+from .outdir import write_error
 
 __all__ = ["write_exr", "read_exr", "rgb_channels", "stack_rgb", "split_rgb", "check_finite"]
 
@@ -128,9 +129,7 @@ def write_exr(path, channels: Mapping[str, np.ndarray], *, overwrite: bool = Tru
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
         os.close(fd)
     except OSError as exc:
-        raise InputError(
-            f"cannot create {path} in {directory}: {exc}. Choose a writable output path."
-        ) from exc
+        raise (write_error(path, exc, what="create") or exc) from None
     try:
         header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
         # OpenEXR.File replaces the dict's values by Channel objects: give it its own dict.
@@ -138,8 +137,11 @@ def write_exr(path, channels: Mapping[str, np.ndarray], *, overwrite: bool = Tru
             exr.write(tmp)
         _fsync(tmp)
         _publish(tmp, path, overwrite)
-    except OSError as exc:
-        raise InputError(f"cannot write {path}: {exc}. Check free space and permissions.") from exc
+    except (OSError, RuntimeError) as exc:  # OpenEXR reports a full disk as a RuntimeError with its text
+        err = write_error(path, exc)
+        if err is None:
+            raise
+        raise err from None
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)

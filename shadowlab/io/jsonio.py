@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from .outdir import write_error
 
 __all__ = ["write_json_atomic", "read_json", "to_python"]
 
@@ -76,17 +77,15 @@ def write_json_atomic(path, obj) -> None:
         directory.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
     except OSError as exc:
-        raise InputError(
-            f"cannot create {path} in {directory}: {exc}. Choose a writable output path."
-        ) from exc
+        raise (write_error(path, exc, what="create") or exc) from None
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
             fh.write(text)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except OSError as exc:
-        raise InputError(f"cannot write {path}: {exc}. Check free space and permissions.") from exc
+    except OSError as exc:  # a full disk, permissions: exit 3 with the fix (outdir.write_error)
+        raise (write_error(path, exc) or exc) from None
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
