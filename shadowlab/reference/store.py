@@ -58,10 +58,11 @@ from ..errors import EnvironmentProblem, ReferenceError_, ShadowlabError
 from ..io.exr import read_exr, write_exr
 from ..io.jsonio import read_json, write_json_atomic
 from ..io.outdir import error_number, write_error
-from ..scene.spec import load_spec, resolve
+from ..scene.spec import builtin_dir, load_spec, resolve
+from . import location
+from .location import ROOT_ENV
 from .truth import LightTruth, Truth
 
-ROOT_ENV = "SHADOWLAB_REFERENCES"
 LOCK_DIR = ".locks"
 CHECKSUM_KEY = "truth_sha256"
 FILES = ("truth.exr", "meta.json")
@@ -78,19 +79,33 @@ def _checkpoint(point: str) -> None:
 
 
 def root(create: bool = False) -> Path:
-    """Where references live: ``$SHADOWLAB_REFERENCES`` or ``references/`` at the repository top.
+    """Where references live: ``--references``, ``$SHADOWLAB_REFERENCES``, a project's
+    ``shadowlab.toml`` / ``[tool.shadowlab]``, else ``./references`` (:mod:`.location`); never
+    inside the installed package.
 
-    A ``$SHADOWLAB_REFERENCES`` that does not exist is refused (a misspelt path would otherwise
-    start an empty store) unless ``create`` (``shadowlab reference`` creates a new store)."""
-    env = os.environ.get(ROOT_ENV)
-    if not env:
-        return Path(__file__).resolve().parents[2] / "references"
-    p = Path(env)
-    if not create and not p.is_dir():
-        raise ReferenceError_(f"{ROOT_ENV}={env} is not a directory: no reference store there; check the "
-                              f"spelling, or unset {ROOT_ENV} to use the default store. `shadowlab reference "
-                              f"SCENE` creates a new store at that path")
-    return p
+    A store given by the option or the variable that does not exist is refused (a misspelt path
+    would otherwise start an empty store) unless ``create`` (``shadowlab reference`` creates a new
+    store)."""
+    loc = location.locate()
+    location.check_outside_package(loc.path, loc.source)
+    if loc.source in ("option", "environment") and not create and not loc.path.is_dir():
+        given = f"--references {loc.path}" if loc.source == "option" else f"{ROOT_ENV}={loc.path}"
+        undo = "leave the option out" if loc.source == "option" else f"unset {ROOT_ENV}"
+        raise ReferenceError_(f"{given} is not a directory: no reference store there; check the spelling, or "
+                              f"{undo} to use the project's store. `shadowlab reference SCENE` creates a new store "
+                              "at that path")
+    return loc.path
+
+
+def builtin_copy(scene_spec, resolution, frame: int | None = None) -> Path | None:
+    """The committed reference of a built-in scene (package data, read-only:
+    :func:`.location.builtin_references`), None for another scene or where none is committed."""
+    src = str(getattr(scene_spec, "source", "") or "")
+    mine = builtin_dir() / f"{scene_spec.name}.toml"
+    if not src or not Path(src).exists() or not mine.exists() or Path(src).resolve() != mine.resolve():
+        return None
+    d = location.builtin_references() / scene_spec.name / dir_name(resolution, frame)
+    return d if d.is_dir() else None
 
 
 def dir_name(resolution, frame: int | None = None) -> str:
@@ -118,8 +133,11 @@ def path_for(scene_name: str, resolution, base: Path | None = None, create: bool
 
 
 def reference_command(scene_name: str, resolution, frame: int | None = None) -> str:
+    """The command that renders this reference (into the store ``--references`` chose, if any)."""
+    chosen = location.chosen()
     return (f"shadowlab reference {scene_name} --resolution {resolution[0]}x{resolution[1]}"
-            + ("" if frame is None else f" --frame {frame}"))
+            + ("" if frame is None else f" --frame {frame}")
+            + ("" if chosen is None else f" --references {shlex.quote(str(chosen))}"))
 
 
 # ------------------------------------------------------------------------------------- locking
@@ -270,7 +288,7 @@ def scene_arg(scene_spec) -> str:
     """How the fix texts name a scene: its built-in name, or the path of its file when it is not a
     built-in (``shadowlab reference NAME`` fails for a scene only known by its path)."""
     src = str(getattr(scene_spec, "source", "") or "")
-    builtin = Path(__file__).resolve().parents[2] / "scenes" / f"{scene_spec.name}.toml"
+    builtin = builtin_dir() / f"{scene_spec.name}.toml"
     if not src or (Path(src).exists() and Path(src).resolve() == builtin.resolve()):
         return scene_spec.name
     return shlex.quote(src)
@@ -508,6 +526,8 @@ def load(scene_spec, resolution=None, base: Path | None = None, check_hash: bool
     d = path_for(scene_spec.name, res, base, frame=frame)
     cmd = reference_command(scene_arg(scene_spec), res, frame)
     _note(recover(d))
+    if not d.exists() and (committed := builtin_copy(scene_spec, res, frame)) is not None:
+        d = committed                        # a built-in scene's committed reference, read where it is installed
     if not d.exists():
         have = sorted(p.name for p in d.parent.iterdir() if _RES_DIR.match(p.name)) if d.parent.is_dir() else []
         at = f"{res[0]}x{res[1]}" + ("" if frame is None else f" frame {frame}")
@@ -620,9 +640,19 @@ def list_references(base: Path | None = None) -> list[dict]:
     """Every stored reference: scene, resolution (``"WxH"``), frame (None, or the camera path
     frame), path, meta and ``status`` (a list of problems: incomplete, damaged, stale, checksum
     mismatch, ...; empty when the reference is fine).
-    Temporary and leftover directories of interrupted saves are not references and are not listed."""
+    Temporary and leftover directories of interrupted saves are not references and are not listed.
+    Without ``base``, the built-in scenes' committed references that the store does not hold follow,
+    marked ``builtin`` (read-only, where shadowlab is installed)."""
+    out = _listed(Path(base or root()))
+    if base is None:
+        have = {(x["scene"], x["resolution"], x["frame"]) for x in out}
+        out += [dict(x, builtin=True) for x in _listed(location.builtin_references())
+                if (x["scene"], x["resolution"], x["frame"]) not in have]
+    return out
+
+
+def _listed(r: Path) -> list[dict]:
     out = []
-    r = Path(base or root())
     if not r.is_dir():
         return out
     for sd in sorted(p for p in r.iterdir() if p.is_dir() and not p.name.startswith(".")):
