@@ -70,6 +70,12 @@ Per frame:
    like the hard shadows. The light's RGB visibility is the blurred hard value times the blurred
    tint (``ShadowResult.colour``); its scalar visibility is that product's channel mean.
 
+Where the work happens: a layer's value is the product of its member lights' values, packed
+with the other layers into the layered shadow map and blurred once, so the blur needs every
+member light before any of them has a visibility. ``prepare`` therefore runs each light's own
+steps 2–4 (:meth:`SSSS.light_inputs`) and the layers' steps 3–5 once per render; ``render_light``
+does step 6, the light's read of its layer.
+
 AOVs per light: ``layer`` (its layer index), ``penumbra_size`` (its layer's stored size at its
 points, world units), ``filter_px`` (F, pixels), ``hard`` (its hard shadow), and with translucent
 casters ``tinted`` (1 where its layer's unblurred tint has coverage). Stats: ``layers_used``,
@@ -440,8 +446,43 @@ class SSSS(ShadowMapTechnique):
         iy = dr.clip(mi.Int32(dr.floor(rec["v"])) // B, 0, Nl - 1)
         return dr.gather(mi.Float, tex, (mi.UInt32(rec["face"]) * Nl + mi.UInt32(iy)) * Nl + mi.UInt32(ix))
 
-    # -- the whole frame, once per render ---------------------------------------------------------
+    # -- per light: what its layer needs --------------------------------------------------------
+    def light_inputs(self, frame, light, values, ctx) -> dict:
+        """Light ``light``'s contribution to its layer (steps 2–4 of the module docstring, its own
+        work): its map, hard shadow, penumbra size, lit-volume membership, layer value (binary:
+        the hard shadow; exponential: exp(−k(z − d)) where shadowed) and, with translucent
+        casters, its tint. Evaluated."""
+        gb = frame.gbuffer
+        coloured = frame.scene.has_translucent
+        view = view_for(frame, light.name, values)
+        opaque = view_for(frame, light.name, values, translucent=True)  # ``view`` itself without translucency
+        rec = receiver(frame, view, ctx.bias)
+        hard = dr.select(rec["active"], depth_test(opaque, rec, texel_index(rec["u"]), texel_index(rec["v"]),
+                                                   ctx.bias), 1.0)
+        size = self.penumbra_size(frame, light, view, rec, values, ctx)
+        member = gb.valid & in_volume(light, gb.p)
+        if values["layer_packing"] == "exponential":
+            zocc = opaque.fetch("z", rec["face"], texel_index(rec["u"]), texel_index(rec["v"]))
+            zrec = rec["z"] - rec["zbias"]
+            e = dr.clip(dr.exp(-dr.opaque(mi.Float, float(values["exp_k"])) * (zrec - zocc)), 0.0, 1.0)
+            val = dr.select(hard > 0.5, 1.0, e)
+        else:
+            val = hard
+        tint = None
+        if coloured:  # behind the nearest translucent caster, by the hard shadows' biased test
+            ix, iy = texel_index(rec["u"]), texel_index(rec["v"])
+            behind = depth_test(opaque.translucent, rec, ix, iy, ctx.bias) < 0.5
+            tint = dr.select(rec["active"] & behind, opaque.tint(rec["face"], ix, iy), mi.Color3f(1.0))
+        dr.eval(hard, size, member, val, *([tint] if coloured else []))
+        return dict(view=view, hard=hard, size=size, member=member, val=val, tint=tint)
+
+    # -- what the lights share, once per render ---------------------------------------------------
     def prepare(self, frame, values, ctx):
+        """The layers and their blur (steps 1, 3–5), which every light of a layer shares: a
+        layer's value is the product of its members' values, packed with the other layers into
+        the layered shadow map, and blurred once, so no light's visibility exists before every
+        member of its layer has contributed (:meth:`light_inputs`). :meth:`render_light` then
+        reads its layer."""
         super().prepare(frame, values, ctx)
         lights = list(frame.lights)
         k = int(values["max_layers"])
@@ -453,30 +494,7 @@ class SSSS(ShadowMapTechnique):
         scr = frame.screen
         n_layers = max(lay.layer.values()) + 1
         coloured = frame.scene.has_translucent
-        per = {}
-        for light in lights:
-            view = view_for(frame, light.name, values)
-            opaque = view_for(frame, light.name, values, translucent=True)  # ``view`` itself without translucency
-            rec = receiver(frame, view, ctx.bias)
-            hard = dr.select(rec["active"], depth_test(opaque, rec, texel_index(rec["u"]), texel_index(rec["v"]),
-                                                       ctx.bias), 1.0)
-            size = self.penumbra_size(frame, light, view, rec, values, ctx)
-            member = gb.valid & in_volume(light, gb.p)
-            if values["layer_packing"] == "exponential":
-                zocc = opaque.fetch("z", rec["face"], texel_index(rec["u"]), texel_index(rec["v"]))
-                zrec = rec["z"] - rec["zbias"]
-                e = dr.clip(dr.exp(-dr.opaque(mi.Float, float(values["exp_k"])) * (zrec - zocc)), 0.0, 1.0)
-                val = dr.select(hard > 0.5, 1.0, e)
-            else:
-                val = hard
-            tint = None
-            if coloured:  # behind the nearest translucent caster, by the hard shadows' biased test
-                ix, iy = texel_index(rec["u"]), texel_index(rec["v"])
-                behind = depth_test(opaque.translucent, rec, ix, iy, ctx.bias) < 0.5
-                tint = dr.select(rec["active"] & behind, opaque.tint(rec["face"], ix, iy), mi.Color3f(1.0))
-            dr.eval(hard, size, member, val, *([tint] if coloured else []))
-            per[light.name] = dict(view=view, rec_active=rec["active"], hard=hard, size=size, member=member, val=val,
-                                   tint=tint)
+        per = {light.name: self.light_inputs(frame, light, values, ctx) for light in lights}
         # per layer: combine the members (product of values and of tints, largest size)
         lv, ls, lt = [], [], []
         for L in range(n_layers):
@@ -530,23 +548,26 @@ class SSSS(ShadowMapTechnique):
         ctx.layering = lay
         ctx.words = len(words)
         ctx.twords = n_layers if coloured else 0
-        ctx.out = {}
-        for light in lights:
-            q, L = per[light.name], lay.layer[light.name]
-            vis = dr.select(q["member"], blurred[L], 1.0)
-            aovs = {"layer": dr.full(mi.Float, float(L), gb.size),
-                    "penumbra_size": dr.select(q["member"], ls[L], 0.0),
-                    "filter_px": dr.select(q["member"], fpx[L], 0.0), "hard": q["hard"]}
-            rgb = None
-            if coloured:
-                rgb = dr.select(q["member"], blurred[L] * tints[L], mi.Color3f(1.0))
-                vis = (rgb.x + rgb.y + rgb.z) * (1.0 / 3.0)
-                aovs["tinted"] = dr.select(q["member"], lt[L][3], 0.0)
-            ctx.out[light.name] = LightResult(vis, aovs=aovs, active=gb.valid, colour=rgb,
-                                              stats={**map_stats(q["view"]), "layer": L}, maps=[map_entry(q["view"])])
+        ctx.per, ctx.sizes, ctx.blurred, ctx.filter_px = per, ls, blurred, fpx
+        ctx.tints, ctx.coverage = tints, [t[3] for t in lt] if coloured else []
 
+    # -- per light: read its layer ----------------------------------------------------------------
     def render_light(self, frame, light, values, ctx):
-        return ctx.out[light.name]
+        """Step 6: the light's visibility is its layer's blurred value inside its lit volume (1
+        outside), times the layer's blurred tint with translucent casters; its AOVs."""
+        gb = frame.gbuffer
+        q, L = ctx.per[light.name], ctx.layering.layer[light.name]
+        vis = dr.select(q["member"], ctx.blurred[L], 1.0)
+        aovs = {"layer": dr.full(mi.Float, float(L), gb.size),
+                "penumbra_size": dr.select(q["member"], ctx.sizes[L], 0.0),
+                "filter_px": dr.select(q["member"], ctx.filter_px[L], 0.0), "hard": q["hard"]}
+        rgb = None
+        if ctx.tints:
+            rgb = dr.select(q["member"], ctx.blurred[L] * ctx.tints[L], mi.Color3f(1.0))
+            vis = (rgb.x + rgb.y + rgb.z) * (1.0 / 3.0)
+            aovs["tinted"] = dr.select(q["member"], ctx.coverage[L], 0.0)
+        return LightResult(vis, aovs=aovs, active=gb.valid, colour=rgb,
+                           stats={**map_stats(q["view"]), "layer": L}, maps=[map_entry(q["view"])])
 
     def summarise(self, frame, values, ctx, lights):
         lay = ctx.layering
