@@ -235,6 +235,9 @@ def _reference_done(path, meta):
                    f"after the round cap of {tm['max_rounds']} rounds (worst {tm['worst_se']:.4f}; recorded in "
                    f"meta.json under target_missed); raise the cap with --max-rounds {min(4096, 4 * tm['max_rounds'])} "
                    "--force", err=True)
+    for n, why in (meta.get("vacuous") or {}).items():   # lights that measure nothing (reference.vacuous)
+        typer.echo(f"warning: light {n!r} {why}; its metrics are n/a in every comparison with this reference "
+                   "(recorded in meta.json under vacuous)", err=True)
 
 
 @app.command()

@@ -249,15 +249,21 @@ def test_a_gate_never_passes_on_an_empty_or_too_small_pixel_set():
     assert r.passed and [c.name for c in r.checks] == ["budget.rmse"]
 
 
-def test_gate_file_on_a_scene_the_camera_does_not_see_fails_exit_1(tmp_path, capsys, monkeypatch):
+def test_gate_file_on_a_scene_the_camera_does_not_see_never_passes(tmp_path, capsys, monkeypatch):
+    """Such a reference is no longer stored (tests/test_reliability_vacuous.py); one stored before
+    that check (here: with it switched off) is refused by the gate as it is read: exit 2, never green."""
     scene = _scene(tmp_path, name="blind", res=16, camera_target="[0.0, 10.0, 12.0]")
     base = tmp_path / "refs"
+    with pytest.raises(ReferenceError_, match="the camera sees no surface"):
+        pipeline.reference(str(scene), base=base, progress=False, max_rounds=16, spp=0)
+    monkeypatch.setattr(pipeline.references, "_check_measures", lambda *a, **k: None)
     pipeline.reference(str(scene), base=base, progress=False, max_rounds=16, spp=0)
     gf = tmp_path / "gates.toml"
     gf.write_text(f'version = 1\nreferences = "{base}"\n[[gate]]\nname = "blind/hard"\nscene = "{scene}"\n'
                   'candidate = { technique = "hard" }\nbudget = { rmse = 0.5, flip = 0.5 }\n')
     rc, out, err = _main(["gate", gf, "--out", tmp_path / "g"], capsys)
-    assert rc == 1 and "FAIL  blind/hard  pixels  0 pixel(s) to compare" in out, (out, err)
+    assert rc == 2 and "measures nothing: the camera sees no surface" in err, (out, err)
+    assert "passed" not in out
 
 
 def test_junit_of_an_interrupted_run_has_an_error():

@@ -12,7 +12,7 @@ from pathlib import Path
 from .. import backend
 from ..cluster import Embedded, Executor, run_id
 from ..errors import InputError
-from ..reference import sdf_truth, store
+from ..reference import sdf_truth, store, vacuous
 from ..reference.truth import render_truth, target_missed
 from ..render.frame import make_frame
 from ..scene import load
@@ -100,9 +100,8 @@ def reference_jobs(scenes: list[str], resolution=None, frames=None, *, frame: in
             todo = frame_list(sc.spec, frame, frames) or [None]
         for f in todo:
             s_ = sc if f is None else sc.at_frame(f)
-            store.check_writable(
-                store.path_for(s_.name, s_.resolution, base, create=True, frame=s_.frame), force, s_.name, s_.resolution
-            )
+            store.check_writable(store.path_for(s_.name, s_.resolution, base, create=True, frame=s_.frame), force,
+                                 store.scene_arg(s_.spec), s_.resolution)
             jobs.append(ReferenceJob(scene, tuple(sc.resolution), f, seed, target_se, strata, max_rounds, spp, ss,
                                      force, root, run, progress))
     return jobs
@@ -120,12 +119,25 @@ def render_reference_job(job: ReferenceJob) -> tuple:
         mine = store.stored_by_run(dest, job.run)
         if mine is not None:
             return sc.name, sc.frame, dest, mine
-        with store.writing(dest, force=job.force, scene_name=sc.name, resolution=sc.resolution):
+        with store.writing(dest, force=job.force, scene_name=store.scene_arg(sc.spec), resolution=sc.resolution):
             truth, meta = _render_reference(sc, seed=job.seed, target_se=job.target_se, strata=job.strata,
                                             max_rounds=job.max_rounds, spp=job.spp, progress=job.progress, ss=job.ss)
+            _check_measures(sc, truth, meta)
             meta["run"] = job.run
             path = store.save(truth, meta, dest, force=job.force)
     return sc.name, sc.frame, path, meta
+
+
+def _check_measures(sc, truth, meta: dict) -> None:
+    """Refuse (exit 2, nothing stored) a truth that measures nothing (:mod:`shadowlab.reference.vacuous`:
+    a blind camera, every light unreached or enclosed); record the lights that measure nothing in
+    ``meta["vacuous"]`` (the command prints them, and every reader warns again)."""
+    found = vacuous.of_truth(truth)
+    cmd = store.reference_command(store.scene_arg(sc.spec), sc.resolution, sc.frame)
+    vacuous.refuse_empty(found, [l.name for l in sc.lights], where=f"the reference of scene {sc.name!r}",
+                         fix_tail=f"run `{cmd}` again (nothing was stored)")
+    if found:
+        meta["vacuous"] = {n: vacuous.WHY[why][0] for n, why in found.items()}
 
 
 def reference_batch(scenes: list[str], resolution=None, frames=None, *, executor: Executor | None = None,

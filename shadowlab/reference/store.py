@@ -61,6 +61,7 @@ from ..io.outdir import error_number, write_error
 from ..scene.spec import builtin_dir, load_spec, resolve
 from . import location
 from .location import ROOT_ENV
+from . import vacuous
 from .truth import LightTruth, Truth
 
 LOCK_DIR = ".locks"
@@ -547,11 +548,7 @@ def load(scene_spec, resolution=None, base: Path | None = None, check_hash: bool
     if shapes != {(res[1], res[0])}:
         raise ReferenceError_(f"{exr} is {'/'.join(f'{s[1]}x{s[0]}' for s in sorted(shapes))}, not {res[0]}x{res[1]}: "
                               f"it does not belong in {d}; re-render it with `{cmd} --force`")
-    need = ["mask", "depth", *(f"{p}.{c}" for p in ("shaded", "shaded.var") for c in "RGB")]
-    for l in scene_spec.lights:
-        n = l.name
-        need += [f"V.{n}", f"V.{n}.se", f"A.{n}", f"A.{n}.se", f"N.{n}", f"B.{n}", *(f"U.{n}.{c}" for c in "RGB")]
-    missing = [c for c in need if c not in ch]
+    missing = [c for c in required_channels(l.name for l in scene_spec.lights) if c not in ch]
     if missing:
         raise ReferenceError_(f"{exr} has no channel {', '.join(missing[:6])}{' …' if len(missing) > 6 else ''}; "
                               f"re-render with `{cmd} --force`")
@@ -579,7 +576,51 @@ def load(scene_spec, resolution=None, base: Path | None = None, check_hash: bool
         view_depth=ch["depth"],
         stats=meta.get("stats", {}),
     )
+    _check_measures(truth, d, cmd, [l.name for l in scene_spec.lights])
     return truth, meta
+
+
+def required_channels(lights) -> list[str]:
+    """The EXR channels every reader needs, for the lights named ``lights``."""
+    need = ["mask", "depth", *(f"{p}.{c}" for p in ("shaded", "shaded.var") for c in "RGB")]
+    for n in lights:
+        need += [f"V.{n}", f"V.{n}.se", f"A.{n}", f"A.{n}.se", f"N.{n}", f"B.{n}", *(f"U.{n}.{c}" for c in "RGB")]
+    return need
+
+
+_WARNED: set = set()
+
+
+def _check_measures(truth: Truth, d: Path, cmd: str, lights) -> None:
+    """A reference that measures nothing is refused (exit 2); one with some lights that measure
+    nothing is used with a warning, once per process, in every command that reads it (:mod:`.vacuous`)."""
+    found = vacuous.of_truth(truth)
+    vacuous.refuse_empty(found, lights, where=f"the reference at {d}", fix_tail=f"re-render it with `{cmd} --force`")
+    if str(d) not in _WARNED:
+        _WARNED.add(str(d))
+        for w in vacuous.warnings(found):
+            print(f"warning: the reference at {d}: {w}", file=sys.stderr)
+
+
+def _content_problems(d: Path, meta: dict, cmd: str) -> list[str]:
+    """What ``references`` says of truth.exr's content: a channel missing, nothing measured."""
+    try:
+        ch = read_exr(d / "truth.exr")
+    except ShadowlabError:
+        return [f"damaged: truth.exr does not read; re-render with `{cmd} --force`"]
+    lights = meta.get("lights") if isinstance(meta.get("lights"), list) else sorted(
+        {k[2:] for k in ch if k.startswith("V.") and not k.endswith(".se")})
+    missing = [c for c in required_channels(lights) if c not in ch]
+    if missing:
+        return [f"damaged: truth.exr has no channel {', '.join(missing[:6])}{' …' if len(missing) > 6 else ''}; "
+                f"re-render with `{cmd} --force`"]
+    found = vacuous.findings(ch["mask"] > 0.5, {n: np.stack([ch[f"U.{n}.{c}"] for c in "RGB"], -1) for n in lights},
+                             {n: ch[f"V.{n}"] for n in lights})
+    try:
+        vacuous.refuse_empty(found, lights, where="it", fix_tail=f"re-render with `{cmd} --force`")
+    except ReferenceError_ as e:
+        return [f"empty: {e}"]
+    return vacuous.warnings(found)
 
 
 # ---------------------------------------------------------------------------------- listing
@@ -612,6 +653,7 @@ def _status(d: Path, scene: str, meta) -> list[str]:
         out.append("no checksum (written before checksums)")
     elif sha256_file(d / "truth.exr") != want:
         out.append(f"checksum mismatch: truth.exr was changed; re-render with `{cmd} --force`")
+    out += _content_problems(d, meta, cmd)
     sf = _scene_file(scene, meta)
     if sf is None:
         out.append("scene file not found: freshness not checked")
