@@ -219,3 +219,33 @@ def test_the_sphere_fit_does_not_change_when_the_camera_turns_about_its_position
                 assert c == pytest.approx(c0, rel=1e-9)
     box = [g[0] for g in got[("box", False)]]
     assert abs(box[1] / box[0] - 1.0) > 1e-3                         # the box's half size changes
+
+
+# ----------------------------------------------------------------------------- splits (§4.1)
+
+def _m_tilde(C, n):
+    """§4.1's m̃ = n·dz/(z·ds) at the start z = C_i of each cascade, with the cascade's own
+    parameterisation: s spans 1/N over [C_i, C_{i+1}], so dz/ds = N·(C_{i+1} − C_i)."""
+    C = np.asarray(C, np.float64)
+    N = len(C) - 1
+    return n * N * np.diff(C) / C[:-1]
+
+
+@pytest.mark.parametrize("n, f, N", [(0.1, 150.0, 3), (1.0, 1000.0, 8), (0.5, 40.0, 4)])
+def test_uniform_splits_have_the_worst_case_m_tilde_and_lambda_trades_it_against_the_first_cascade(n, f, N):
+    """§4.1: with uniform splits dz/ds = f − n, so m̃ = n(f − n)/z, largest (f − n) at z = n: the
+    theoretical worst split; log splits make m̃ the same n·N((f/n)^(1/N) − 1) in every cascade;
+    the practical split's λ trades the worst m̃ (falling as λ grows) against the length of the
+    nearest cascade (shrinking: "near cascades too short")."""
+    from shadowlab.techniques.cascades import splits
+    uni = splits("uniform", n, f, N)
+    assert np.allclose(_m_tilde(uni, n), n * (f - n) / uni[:-1], rtol=1e-12)
+    assert _m_tilde(uni, n).max() == pytest.approx(f - n, rel=1e-12)
+    log = splits("log", n, f, N)
+    assert np.allclose(_m_tilde(log, n), n * N * ((f / n) ** (1.0 / N) - 1.0), rtol=1e-9)
+    lams = np.linspace(0.0, 1.0, 11)
+    worst = [_m_tilde(splits("practical", n, f, N, lam), n).max() for lam in lams]
+    first = [splits("practical", n, f, N, lam)[1] - n for lam in lams]
+    assert worst[0] == pytest.approx(f - n) and np.all(np.diff(worst) < 0)
+    assert np.all(np.diff(first) < 0)
+    assert min(worst) == pytest.approx(_m_tilde(log, n).max(), rel=1e-9)
