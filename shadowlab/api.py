@@ -150,11 +150,13 @@ def gate_image(image, reference, *, target: str | None = None, light: str | None
 
 def techniques_for(scene=None) -> dict:
     """Every registered technique -> None where it applies to ``scene`` (a name, path or loaded
-    scene; None: every technique applies), else the reason it does not.
+    scene; None: any scene) and can run on this machine, else the reason it does not
+    (:meth:`~shadowlab.techniques.base.Technique.unsupported`, then ``unavailable``).
 
     >>> t = techniques_for("parallel_planes")
     >>> t["pcss"] is None, "area" in t["dpsv"]
     (True, True)
     """
     spec = None if scene is None else getattr(scene, "spec", None) or scene_spec(scene)
-    return {n: (None if spec is None else _techniques.get(n).unsupported(spec)) for n in _techniques.names()}
+    return {n: (None if spec is None else t.unsupported(spec)) or t.unavailable()
+            for n, t in ((n, _techniques.get(n)) for n in _techniques.names())}

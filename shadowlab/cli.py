@@ -313,9 +313,11 @@ def _applicable(scene: str) -> list[str]:
 
 @app.command()
 def demo(out: str = typer.Option("reports/demo", "--out", "-o"), force: bool = ForceOpt,
+         resolution: Optional[str] = typer.Option(None, "--resolution", "-r", help="WxH (default: the scene's, "
+                                                  "whose reference comes with shadowlab; another needs its own)."),
          variant: Optional[str] = VariantOpt, references: Optional[str] = ReferencesOpt):
     """Compare every registered technique that renders the built-in `contact` scene and print the table."""
-    _compare("contact", _applicable("contact"), [], out, None, variant, force=force)
+    _compare("contact", _applicable("contact"), [], out, resolution, variant, force=force)
 
 
 @app.command()

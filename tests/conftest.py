@@ -66,6 +66,9 @@ SLOW_FILES = {
     "test_report_browser.py": 7,        # 4 tests
     "test_architecture_example.py": 6,  # 1 test
     "test_pcf_acne.py": 4,              # 2 tests
+    "test_wheel.py": 28,                # 2 tests: builds, installs and runs the wheel
+    "test_casts_shadows.py": 22,        # 7 tests (CPU seconds; every technique on two scenes)
+    "test_applicability.py": 20,        # 6 tests: compare -t all and fit --all through the CLI
 }
 
 

@@ -341,6 +341,13 @@ class Technique:
         :meth:`render` refuses them with that text (InputError)."""
         return None
 
+    def unavailable(self) -> str | None:
+        """Why the technique cannot run on this machine (a program or package outside Python that it
+        needs is missing, e.g. an engine's npm package or Chromium, which ``pip install`` does not
+        bring), None (the default) when it can: ``-t all`` and ``demo`` skip it with this reason;
+        asked for by name it fails with exit 3 and the fix."""
+        return None
+
 
     def fit_params(self, values: dict) -> tuple:
         """The parameters ``shadowlab fit`` searches when none are named, for the resolved

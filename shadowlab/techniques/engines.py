@@ -185,6 +185,14 @@ class EngineTechnique(Technique):
         return needs_mitsuba_geometry(self.name, spec) or (
             f"{self.name}: the scene has no lights for the engine to shadow" if not spec.lights else None)
 
+    def unavailable(self) -> str | None:
+        try:
+            package_version(self.engine)
+            browser_mod.chromium()
+        except EnvironmentProblem as e:
+            return f"{self.name}: {e}"
+        return None
+
     def fit_params(self, values: dict) -> tuple:
         """The engine's filter and bias parameters (nothing here is differentiable)."""
         return tuple(p.name for p in self.params if p.kind == "float")[:3]
