@@ -118,6 +118,26 @@ def _split(csv: str) -> list[str]:
     return [x.strip() for x in csv.split(",") if x.strip()]
 
 
+def _technique_list(text: str) -> list[str]:
+    """``-t`` of compare: technique names separated by commas; consecutive ``LIGHT=TECHNIQUE``
+    items make one technique per light (``sun=csm,softbox=pcss,pcss`` is that mix and pcss; a
+    ``;`` separates two mixes)."""
+    out = []
+    for group in text.split(";"):
+        mix: list[str] = []
+        for item in _split(group):
+            if "=" in item:
+                mix.append(item)
+                continue
+            if mix:
+                out.append(",".join(mix))
+                mix = []
+            out.append(item)
+        if mix:
+            out.append(",".join(mix))
+    return out
+
+
 @app.command()
 def scenes(names: bool = typer.Option(False, "--names", help="Only the names, one per line.")):
     """List the built-in scenes."""
@@ -295,7 +315,7 @@ def compare(scene: str = typer.Argument(..., help="Built-in scene name or path t
     from .fit.preset import load as load_preset
     out = out or f"reports/{Path(scene).stem}"
     pre = load_preset(preset) if preset else None
-    techs = _split(techniques_) if techniques_ is not None else list(pre.values) if pre else ["hard", "pcf"]
+    techs = _technique_list(techniques_) if techniques_ is not None else list(pre.values) if pre else ["hard", "pcf"]
     if techs == ["all"]:
         techs = _applicable(scene)
     _compare(scene, techs, set_, out, resolution, variant, pre, force, frame, frames)

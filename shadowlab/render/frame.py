@@ -14,7 +14,7 @@ refuse it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -39,10 +39,30 @@ class FrameContext:
     sdf: object = None                     # shadowlab.sdf.SDF of the scene, None with meshes
     _views: dict = field(default_factory=dict, repr=False)
     _cache: dict = field(default_factory=dict, repr=False)
+    #: the names of the lights this context shows (None: every light of the scene); see :meth:`for_lights`
+    only: tuple | None = None
 
     @property
     def lights(self):
-        return self.scene.spec.lights
+        """The scene's lights, or those of :meth:`for_lights`."""
+        ls = self.scene.spec.lights
+        return ls if self.only is None else [l for l in ls if l.name in self.only]
+
+    @property
+    def light_spec(self):
+        """The scene's spec with only :attr:`lights` (what a technique restricted to them must support)."""
+        return self.scene.spec if self.only is None else replace(self.scene.spec, lights=tuple(self.lights))
+
+    def for_lights(self, names) -> FrameContext:
+        """The same frame showing only the lights ``names`` (a technique per light renders each
+        light's technique on it); it shares this frame's G-buffer, unshadowed light and cached
+        light views."""
+        names = tuple(names)
+        unknown = [n for n in names if n not in {l.name for l in self.scene.spec.lights}]
+        if unknown:
+            raise InputError(f"no light named {unknown[0]!r} in scene {self.scene.name!r}; its lights: "
+                             f"{', '.join(l.name for l in self.scene.spec.lights)}")
+        return replace(self, only=names)
 
     @property
     def resolution(self):

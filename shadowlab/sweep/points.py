@@ -70,7 +70,7 @@ def parse_range(text: str, technique: str) -> ParamRange:
         raise InputError(f"--param {text!r}: expected {_FORM}")
     name, _, rng = s.partition("=")
     name = name.strip()
-    if "." in name:
+    if "." in name and name not in {p.name for p in t.params}:      # LIGHT.PARAM of a technique per light stays
         tech, _, name = name.partition(".")
         if tech != technique:
             raise InputError(f"--param {text!r}: names technique {tech!r}, but the sweep runs {technique!r}; "

@@ -14,6 +14,8 @@ metrics are the same bits whatever the number of workers; run times are kept apa
 
 from __future__ import annotations
 
+import re
+
 from contextlib import nullcontext
 from pathlib import Path
 
@@ -34,7 +36,7 @@ __all__ = ["sweep", "sweep_jobs", "best_points", "default_out", "results_only"]
 def default_out(technique: str, param_text: str) -> Path:
     """``reports/sweep/<technique>-<param>``."""
     name = str(param_text).split("=", 1)[0].strip().split(".")[-1] or "param"
-    return Path("reports") / "sweep" / f"{technique}-{name}"
+    return Path("reports") / "sweep" / re.sub(r"[^A-Za-z0-9_.+-]+", "_", f"{technique}-{name}")
 
 
 def _scene_arg(scene: str) -> str:

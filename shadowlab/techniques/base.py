@@ -197,7 +197,9 @@ class LightResult:
     ``maps``: one JSON-able dict per shadow map / tile of the light (a light with cascades or
     tiles has several; each dict holds that map's own numbers, e.g. resolution, near, far);
     ``colour``: optional flat Dr.Jit Color3f RGB visibility (coloured shadows of translucent
-    casters), whose channel mean is ``visibility``."""
+    casters), whose channel mean is ``visibility``; ``images``: AOVs that are images already
+    (H×W[×C] numpy: a technique made of others passes their AOVs through), stored as
+    ``<light>.<name>`` like ``aovs``."""
 
     visibility: object
     aovs: dict = field(default_factory=dict)
@@ -205,6 +207,7 @@ class LightResult:
     stats: dict = field(default_factory=dict)
     maps: list = field(default_factory=list)
     colour: object = None
+    images: dict = field(default_factory=dict)
 
 
 class RenderContext:
@@ -388,7 +391,7 @@ class Technique:
         ``stats[stat][light]`` (plus ``["all"]``, pooled over lights, for a :class:`Pooled`
         mean); the family's global stats (:meth:`summarise`) sit at the top level."""
         values = self.resolve(params)
-        why = self.unsupported(frame.scene.spec)
+        why = self.unsupported(frame.light_spec)
         if why:
             raise InputError(why)
         ctx = RenderContext(self, values)
@@ -410,6 +413,8 @@ class Technique:
                 colour[light.name] = c
             for k, a in extra.items():
                 aovs[f"{light.name}.{k}"] = gb.to_image(a)
+            for k, img in r.images.items():
+                aovs[f"{light.name}.{k}"] = img
             st = {**r.stats, **self.light_stats(frame, light, values, ctx, r)}
             for k, s in st.items():
                 if isinstance(s, Pooled):
@@ -450,12 +455,37 @@ def names() -> list[str]:
     return [n for m in mods for n, t in _REGISTRY.items() if t.__class__.__module__.rsplit(".", 1)[-1] == m]
 
 
+#: (is_composite(name), make(name)) of the technique that composes others from a name
+#: (``light_mix``: ``sun=csm,softbox=pcss``), registered by its module; made techniques are kept
+_COMPOSERS: list = []
+_COMPOSED: dict = {}
+
+
+def register_composer(matches, make) -> None:
+    """Let :func:`get` make a technique from a name that ``matches`` (e.g. a technique per light)."""
+    _COMPOSERS.append((matches, make))
+
+
+def composes(name: str) -> bool:
+    """Whether ``name`` is a technique composed from its name (e.g. a technique per light)."""
+    _load_all()
+    return name not in _REGISTRY and any(matches(name) for matches, _ in _COMPOSERS)
+
+
 def get(name: str) -> Technique:
-    """The registered technique ``name``; the technique modules are imported only when it is not
-    registered yet, so a family that composes others (``import``s their modules, then asks for
-    them here while its own module is being imported) gets them without a circular import."""
+    """The registered technique ``name`` (or one composed from its name, e.g. a technique per
+    light); the technique modules are imported only when it is not registered yet, so a family
+    that composes others (``import``s their modules, then asks for them here while its own module
+    is being imported) gets them without a circular import."""
+    if name in _COMPOSED:
+        return _COMPOSED[name]
     if name not in _REGISTRY:
         _load_all()
+    for matches, make in _COMPOSERS:
+        if name not in _REGISTRY and matches(name):
+            t = make(name)
+            _COMPOSED[name] = _COMPOSED[t.name] = t
+            return t
     if name not in _REGISTRY:
         raise InputError(f"unknown technique {name!r}; registered techniques: {', '.join(names())}")
     return _REGISTRY[name]
@@ -468,6 +498,12 @@ def parse_sets(sets: list[str], techniques: list[str]) -> dict:
         if "=" not in s or "." not in s.split("=", 1)[0]:
             raise InputError(f"--set {s!r}: expected TECHNIQUE.PARAM=VALUE, e.g. pcf.kernel=5")
         key, val = s.split("=", 1)
+        composed = [t for t in techniques if t not in _REGISTRY]
+        owner = [t for t in composed if key in {p.name for p in get(t).params}] or \
+            [t for t in composed if any(p.name.startswith(key.split(".", 1)[0] + ".") for p in get(t).params)]
+        if len(owner) == 1:     # LIGHT.PARAM of a technique per light (an unknown PARAM: the error lists them)
+            out[owner[0]][key] = get(owner[0]).param(key).parse(val, owner[0])
+            continue
         tech, pname = key.split(".", 1)
         t = get(tech)
         if tech not in out:
