@@ -12,9 +12,9 @@ TOML::
     [meta]                               # optional, free-form (scene, loss, losses before/after)
     scene = "contact"
     [pcss]
-    light_size = 0.7386
+    light_scale = 0.7386
 
-JSON: the same keys, ``{"name": ..., "pcss": {"light_size": 0.7386}}``.
+JSON: the same keys, ``{"name": ..., "pcss": {"light_scale": 0.7386}}``.
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ def from_dict(data, path: str = "<preset>") -> Preset:
     for tech, params in data.items():
         if tech in RESERVED:
             continue
-        if tech not in base.names() and not base.composes(tech):
+        if tech not in base.names():
             known = list(base.names()) + list(RESERVED)
             raise InputError(f"preset {path}: unknown technique {tech!r}{did_you_mean(tech, known)}; a preset's "
                              f"top-level keys are {', '.join(RESERVED)} and technique names: "

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from .. import backend
 from ..cluster import Embedded, Executor, run_id
-from ..errors import InputError
+from ..errors import InputError, Interrupted
 from ..reference import sdf_truth, store, vacuous
 from ..reference.truth import render_truth, target_missed
 from ..render.frame import make_frame
@@ -76,6 +76,7 @@ class ReferenceJob:
     base: str
     run: str
     progress: bool = False
+    dest: str = ""         # where it is stored (for the message of an interrupted batch)
 
 
 def reference_jobs(scenes: list[str], resolution=None, frames=None, *, frame: int | None = None, force=False,
@@ -91,7 +92,7 @@ def reference_jobs(scenes: list[str], resolution=None, frames=None, *, frame: in
                          "or pass --all")
     run = run_id()
     root = str(Path(base) if base is not None else store.root(create=True))  # workers may not share our environment
-    jobs = []
+    jobs, given = [], {}
     for scene in scenes:
         sc = load_scene(scene, resolution)
         if frames == "all":
@@ -100,10 +101,15 @@ def reference_jobs(scenes: list[str], resolution=None, frames=None, *, frame: in
             todo = frame_list(sc.spec, frame, frames) or [None]
         for f in todo:
             s_ = sc if f is None else sc.at_frame(f)
-            store.check_writable(store.path_for(s_.name, s_.resolution, base, create=True, frame=s_.frame), force,
-                                 store.scene_arg(s_.spec), s_.resolution)
+            dest = store.path_for(s_.name, s_.resolution, base, create=True, frame=s_.frame)
+            if str(dest) in given:   # the same reference twice (a name and its file, a repeated argument): once
+                print(f"note: {scene} is given twice (as {given[str(dest)]} too): its reference at {dest} is "
+                      "rendered once", file=sys.stderr)
+                continue
+            given[str(dest)] = scene
+            store.check_writable(dest, force, store.scene_arg(s_.spec), s_.resolution)
             jobs.append(ReferenceJob(scene, tuple(sc.resolution), f, seed, target_se, strata, max_rounds, spp, ss,
-                                     force, root, run, progress))
+                                     force, root, run, progress, str(dest)))
     return jobs
 
 
@@ -152,7 +158,25 @@ def reference_batch(scenes: list[str], resolution=None, frames=None, *, executor
     jobs = reference_jobs(scenes, resolution, frames, progress=progress and isinstance(ex, Embedded), **options)
     if new_store:
         print(f"note: {store.ROOT_ENV}={env} did not exist; created a new reference store there", file=sys.stderr)
-    return ex.map(render_reference_job, jobs, desc="references", progress=progress and not isinstance(ex, Embedded))
+    try:
+        return ex.map(render_reference_job, jobs, desc="references", progress=progress and not isinstance(ex, Embedded))
+    except Interrupted as e:
+        if len(jobs) > 1 and not e.detail:
+            e.detail = interrupted_detail(jobs)
+        raise
+
+
+def interrupted_detail(jobs: list[ReferenceJob]) -> str:
+    """What an interrupted batch left: which references its jobs had stored (their run id in
+    meta.json) and which not (nothing partial of those: the store's saves are atomic)."""
+    done = [j for j in jobs if j.dest and store.stored_by_run(Path(j.dest), j.run) is not None]
+    rest = [j for j in jobs if j not in done]
+    text = f"stored {len(done)} of {len(jobs)} references"
+    if done:
+        text += " (" + ", ".join(j.dest for j in done) + ")"
+    if rest:
+        text += "; not stored, each left as it was: " + ", ".join(j.dest or j.scene for j in rest)
+    return text
 
 
 def _render_reference(sc, *, seed, target_se, strata, max_rounds, spp, progress, ss):

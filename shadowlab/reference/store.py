@@ -258,6 +258,18 @@ def _recover_locked(dest: Path) -> str | None:
     return note
 
 
+#: seconds a reader waits for a writer that has moved the old reference away to put the new one in place
+SWAP_WAIT_S = 30.0
+
+
+def _await_swap(dest: Path, wait_s: float = SWAP_WAIT_S) -> None:
+    """A reader that finds ``dest`` missing while an ``.old-*`` directory of a save in progress
+    exists (the fallback's two renames) waits for the new reference instead of reporting none."""
+    deadline = time.monotonic() + wait_s
+    while not dest.exists() and any(".old-" in p.name for p in _leftovers(dest)) and time.monotonic() < deadline:
+        time.sleep(0.02)
+
+
 def recover(dest: Path, wait_s: float = 5.0) -> str | None:
     """Clean up after an interrupted save of ``dest`` (see the module docstring); a no-op, with
     no lock taken, when nothing is left over. Readers call it: if a writer holds the lock while
@@ -527,6 +539,7 @@ def load(scene_spec, resolution=None, base: Path | None = None, check_hash: bool
     d = path_for(scene_spec.name, res, base, frame=frame)
     cmd = reference_command(scene_arg(scene_spec), res, frame)
     _note(recover(d))
+    _await_swap(d)
     if not d.exists() and (committed := builtin_copy(scene_spec, res, frame)) is not None:
         d = committed                        # a built-in scene's committed reference, read where it is installed
     if not d.exists():

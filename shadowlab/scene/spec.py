@@ -668,6 +668,12 @@ def _not_a_scene(path: str, data: dict):
     if "gate" in data and "camera" not in data:
         raise SceneError(f"{path}: this is a gate file ([[gate]] tables), not a scene; run it with "
                          f"`shadowlab gate {path}`, or give a scene (a built-in name or a scene .toml)")
+    tables = [k for k, v in data.items() if isinstance(v, dict) and v and k != "meta"
+              and all(isinstance(x, (bool, int, float, str)) for x in v.values())]
+    if tables and not any(k in data for k in ("camera", "lights", "shapes", "sdf")):
+        raise SceneError(f"{path}: this is a preset (parameter values of {', '.join(tables)}), not a scene; apply it "
+                         f"with --preset {path} (`shadowlab compare SCENE --preset {path}`) and give a scene (a "
+                         "built-in name or a scene .toml)")
 
 
 def parse(data: dict, path: str = "<scene>") -> SceneSpec:
