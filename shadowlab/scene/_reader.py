@@ -176,3 +176,17 @@ def rotations(r: _Reader, table: dict) -> list:
     if any(not any(q[:3]) for q in rot):
         r.fail("rotate", "a non-zero rotation axis in every [ax, ay, az, degrees]", table.get("rotate"))
     return rot
+
+
+def norm(v) -> float:
+    """Euclidean length of a 3-vector (a tuple).
+
+    >>> norm((3.0, 4.0, 0.0))
+    5.0
+    """
+    return math.sqrt(sum(x * x for x in v))
+
+
+def cross(a, b) -> tuple:
+    """Cross product of two 3-vectors (tuples)."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
