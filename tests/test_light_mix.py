@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from shadowlab import cli
-from shadowlab.errors import InputError
+from shadowlab.errors import GateFailure, InputError
 from shadowlab.techniques import base, get
 from shadowlab.techniques.light_mix import LightMix
 
@@ -119,3 +119,28 @@ def test_compare_and_fit_through_the_cli(mitsuba_backend, tmp_path, capsys):
     assert {"warm.light_scale", "cool.light_scale"} <= set(f["params"])
     assert f["loss_after"] <= f["loss_before"] + 1e-9
     assert run("compare", "two_lights", "--preset", tmp_path / "p.toml", "--out", tmp_path / "cmp2") == 0
+
+
+def test_a_gate_file_names_a_technique_per_light(mitsuba_backend, tmp_path):
+    from pathlib import Path
+    store = Path(__file__).resolve().parents[1] / "references"
+    gate = tmp_path / "gates.toml"
+    gate.write_text(f'''version = 1
+references = "{store}"
+
+[[gate]]
+name = "mix/loose"
+scene = "two_lights"
+candidate = {{ technique = "warm=pcss,cool=hard", params = {{ "warm.light_scale" = 1.0 }} }}
+budget = {{ rmse = 0.5 }}
+
+[[gate]]
+name = "mix/tight"
+scene = "two_lights"
+candidate = {{ technique = "warm=pcss,cool=hard" }}
+budget = {{ rmse = 0.0001 }}
+''')
+    with pytest.raises(GateFailure, match="1 gate\\(s\\) failed: mix/tight"):       # exit 1
+        cli.app(["gate", str(gate), "--out", str(tmp_path / "g")], standalone_mode=False)
+    junit = (tmp_path / "g" / "junit.xml").read_text()
+    assert 'name="mix/loose"' in junit and junit.count("<failure") == 1, junit

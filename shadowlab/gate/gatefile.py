@@ -113,7 +113,7 @@ def _keys(where: str, table: Mapping, allowed) -> None:
 
 def _technique(where: str, name: str):
     """The registered technique ``name``, or an InputError suggesting the closest name."""
-    if name not in tbase.names():
+    if name not in tbase.names() and not tbase.composes(name):
         raise InputError(f"{where}: unknown technique {name!r}{did_you_mean(name, tbase.names())}; registered "
                          f"techniques: {', '.join(tbase.names())}")
     return tbase.get(name)
