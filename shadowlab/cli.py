@@ -36,7 +36,15 @@ def _startup_signal(signum, frame):
     os._exit(128 + signum)
 
 
-if __name__ == "__main__" or os.path.basename(sys.argv[0] or "") == "shadowlab":
+def _command_process() -> bool:
+    """This process runs the command (not a worker process started from it, which imports the
+    command's main module again: multiprocessing's spawn)."""
+    if getattr(sys.modules.get("__main__"), "__name__", "") == "__mp_main__":  # spawn re-runs our main module
+        return False
+    return __name__ == "__main__" or os.path.basename(sys.argv[0] or "") == "shadowlab"
+
+
+if _command_process():
     for _s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(_s, _startup_signal)
 

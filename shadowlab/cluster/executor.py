@@ -22,6 +22,7 @@ import os
 import socket
 import struct
 import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -40,6 +41,10 @@ __all__ = ["Executor", "Embedded", "DaskExecutor", "open_executor", "SCHEDULER_E
            "run_id"]
 
 SCHEDULER_ENV = "SHADOWLAB_SCHEDULER"
+#: set in the workers of ``--workers N`` (preload.py: they ignore SIGINT)
+LOCAL_WORKER_ENV = "SHADOWLAB_LOCAL_WORKER"
+#: the -W option given to multiprocessing's resource tracker (see :func:`_local`)
+TRACKER_NOISE = "ignore:resource_tracker:UserWarning"
 #: the worker preload, by file path (it must run before Dr.Jit is imported, so not as a module)
 PRELOAD = str(Path(__file__).with_name("preload.py"))
 #: address schemes of Dask's communication layer
@@ -312,6 +317,11 @@ def _local(workers: int) -> DaskExecutor:
     env = {}
     if backend.init().startswith("cuda"):   # one worker per GPU, round robin (the preload sets CUDA_VISIBLE_DEVICES)
         env["SHADOWLAB_WORKER_GPUS"] = ",".join(visible_gpus())
+    env[LOCAL_WORKER_ENV] = "1"   # the preload makes these workers ignore SIGINT: Ctrl-C is this process's
+    # multiprocessing's resource tracker (a child started with our -W options) reports the semaphores of a
+    # worker the cluster's close had to stop mid-job, and unlinks them: after a Ctrl-C that line is only noise
+    if TRACKER_NOISE not in sys.warnoptions:
+        sys.warnoptions.append(TRACKER_NOISE)
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
                            preload=[PRELOAD], silence_logs=logging.ERROR, env=env)
     return DaskExecutor(Client(cluster), cluster=cluster, threads=threads_per_worker(workers))

@@ -14,12 +14,18 @@ holds one directory per worker name; the original ``HOME`` stays in ``$SHADOWLAB
 With ``$SHADOWLAB_WORKER_GPUS`` (a comma-separated list of GPU ids, set by
 :func:`shadowlab.cluster.executor.open_executor` for ``cuda_ad_rgb``), worker ``k`` sees only GPU
 ``k mod len(list)`` through ``CUDA_VISIBLE_DEVICES``: one worker per GPU.
+
+The workers of ``shadowlab ... --workers N`` (``$SHADOWLAB_LOCAL_WORKER`` set) ignore SIGINT: a
+Ctrl-C at the terminal signals the whole process group, and the command's own process is the one
+that stops the work and closes the cluster; workers that took it too printed their broken
+connections' tracebacks. A worker started by ``dask worker`` keeps its Ctrl-C.
 """
 
 from __future__ import annotations
 
 import os
 import re
+import signal
 import sys
 
 
@@ -46,6 +52,8 @@ def gpu_of(name, gpus: str) -> str | None:
 
 def dask_setup(worker):
     """Called by Dask in the new worker process before it runs a task."""
+    if os.environ.get("SHADOWLAB_LOCAL_WORKER"):   # executor.LOCAL_WORKER_ENV
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     if "drjit" in sys.modules:  # too late: Dr.Jit already chose its cache and its device
         return
     gpu = gpu_of(worker.name, os.environ.get("SHADOWLAB_WORKER_GPUS", ""))
