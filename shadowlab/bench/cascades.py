@@ -78,14 +78,14 @@ def frame_time(frame, params: dict, repeats: int = 3, lookups: int = 7) -> dict:
     render_evaluated(t, frame, p)                     # compile
     shadow, lookup = [], []
     for _ in range(repeats):
-        frame._views.clear()
+        frame.clear_light_views()
         _, total = timed(lambda: render_evaluated(t, frame, p))
         _, warm = timed(lambda: render_evaluated(t, frame, p))
         shadow.append(max(total[0] - warm[0], 0.0))
     _, warm = timed(lambda: render_evaluated(t, frame, p), lookups)
     lookup += warm
     s, lk = float(np.median(shadow)), float(np.median(lookup))
-    frame._views.clear()
+    frame.clear_light_views()
     return {"shadow_pass_s": s, "lookup_s": lk, "frame_s": s + lk, "shadow_pass_runs_s": shadow,
             "lookup_runs_s": lookup}
 
@@ -129,7 +129,7 @@ def _quality(frame, truth, tech: str, params: dict) -> dict:
            "bands": by_distance(v, tl.V, truth.view_depth, valid)}
     if f"{LIGHT}.cascade" in r.aovs:
         out["by_cascade"] = by_label(v, tl.V, r.aovs[f"{LIGHT}.cascade"], valid)
-    frame._views.clear()
+    frame.clear_light_views()
     return out
 
 

@@ -192,7 +192,7 @@ def bench_case(tmp: Path, name: str, light: str, cfg: Config) -> dict:
     shadowed = float(np.count_nonzero((centre < 0.5) & valid) / max(np.count_nonzero(valid), 1))
     hard = base.get("hard").resolve({})
     _, (cast_first,) = timed(lambda: view_for(frame, "L", hard))       # the first cast compiles
-    frame._views.clear()
+    frame.clear_light_views()
     _, (cast_warm,) = timed(lambda: view_for(frame, "L", hard))
     tp = base.get("dpsv").resolve({})
     tree = frame.top_tree("L", int(tp["segments"]), tp["order"])       # built once, cached on the frame

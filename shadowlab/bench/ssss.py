@@ -197,7 +197,7 @@ def bench_lights(cfg: Config, full, timer: Timer) -> dict:
     for n in cfg.lights:
         frame = _frame(replace(spec, lights=spec.lights[:n]))
         names = {l.name for l in spec.lights[:n]}
-        frame._views.update({k: v for k, v in full._views.items() if k[0] in names})
+        frame.share_light_views(full, names)
         rows[str(n)] = {"lights": n, **_light_row(frame, timer, cast=0.0)}
     return {"scene": SCENE, "resolution": list(full.resolution), "rows": rows}
 

@@ -228,7 +228,7 @@ def along_path(targets: list, name: str, params: dict) -> dict:
         r = render_evaluated(t, tg.frame, p)
         first = r if first is None else first
         rows.append({**measures(tg, r), **light_stats(r)})
-        tg.frame._views.clear()              # a map or cascade set is cast again where it is needed
+        tg.frame.clear_light_views()              # a map or cascade set is cast again where it is needed
     return {"technique": name, "params": params, "frames": rows, "summary": summarise(rows), "_first": (first, p)}
 
 

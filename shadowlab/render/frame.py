@@ -42,6 +42,22 @@ class FrameContext:
     #: the names of the lights this context shows (None: every light of the scene); see :meth:`for_lights`
     only: tuple | None = None
 
+    def clear_light_views(self) -> None:
+        """Forget the cached light views, so the next request casts its map again (the benchmarks
+        time a cold frame this way)."""
+        self._views.clear()
+
+    def share_light_views(self, other: FrameContext, lights) -> None:
+        """Use ``other``'s cached light views of the named ``lights`` (a frame of the same scene
+        geometry with fewer lights reuses the maps already cast)."""
+        names = set(lights)
+        self._views.update({k: v for k, v in other.light_views.items() if k[0] in names})
+
+    @property
+    def light_views(self) -> dict:
+        """The light views cast so far, by their key (light name, resolution, bits, back faces, fit)."""
+        return dict(self._views)
+
     @property
     def lights(self):
         """The scene's lights, or those of :meth:`for_lights`."""

@@ -228,7 +228,9 @@ class Face:
     def world_to_clip(self) -> np.ndarray:
         return self.proj_matrix @ self.view_matrix
 
-    def _key(self):
+    @property
+    def projection_key(self) -> tuple:
+        """What two faces must share to be one projection: kind, scale, near, far and shift."""
         return (self.ortho, self.scale, self.near, self.far, self.shift)
 
 
@@ -244,8 +246,8 @@ class Projection:
     @property
     def uniform(self) -> bool:
         """All faces share projection kind, near, far, scale and shift (every cube map does)."""
-        k = self.faces[0]._key()
-        return all(f._key() == k for f in self.faces[1:])
+        k = self.faces[0].projection_key
+        return all(f.projection_key == k for f in self.faces[1:])
 
     def ndc_depth(self, z, face=None):
         """Light-space z -> NDC depth in [0, 1] (numpy or Dr.Jit) with the near / far of
