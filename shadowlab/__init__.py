@@ -4,7 +4,8 @@ Real-time shadow techniques run on Dr.Jit's LLVM backend and are compared with M
 ground truth (area lights, direct illumination only). See README.md and docs/ARCHITECTURE.md.
 
 The public API (:mod:`shadowlab.api`): :func:`load_scene`, :func:`make_frame`, :func:`render_technique`,
-:func:`visibility`, :func:`load_reference`, :func:`compare`, :func:`gate_image`, :func:`techniques_for`.
+:func:`visibility`, :func:`load_reference`, :func:`compare`, :func:`gate_image`, :func:`techniques_for`,
+:func:`shaded_image`, :func:`load_preset`.
 """
 
 __version__ = "0.1.0"
@@ -13,8 +14,8 @@ from .libllvm import point_drjit_at_libllvm
 
 point_drjit_at_libllvm()  # before any module of the package imports Dr.Jit, which reads it on import
 
-__all__ = ["compare", "gate_image", "load_reference", "load_scene", "make_frame", "render_technique", "techniques_for",
-           "visibility", "__version__"]
+__all__ = ["compare", "gate_image", "load_preset", "load_reference", "load_scene", "make_frame", "render_technique",
+           "shaded_image", "techniques_for", "visibility", "__version__"]
 
 
 def __getattr__(name):

@@ -9,7 +9,10 @@ The steps of the data flow (docs/ARCHITECTURE.md), one function each:
 * :func:`compare`: a technique's result against the truth, every metric of ``shadowlab compare``;
 * :func:`gate_image`: any image (an array, e.g. from your own engine) against the truth or another
   array, with the thresholds of the CI gates;
-* :func:`techniques_for`: what applies to a scene, and why the others do not.
+* :func:`techniques_for`: what applies to a scene, and why the others do not;
+* :func:`shaded_image`: the shaded image Σ_L U_L·V_L of any visibility, a technique's or your engine's;
+* :func:`load_preset`: the parameter values of a preset file (``shadowlab fit`` writes them), to pass
+  to :func:`render_technique`.
 
 A user's own pytest gate:
 
@@ -33,6 +36,7 @@ import numpy as np
 
 from . import backend
 from .errors import InputError
+from .fit.preset import load as _load_preset
 from .gate.check import GateResult, check
 from .gate.thresholds import from_keywords
 from .metrics.compare import compare_visibility
@@ -41,12 +45,13 @@ from .pipeline import technique_metrics
 from .reference import store
 from .render.frame import FrameContext
 from .render.frame import make_frame as _make_frame
+from .render.shading import compose
 from .scene.spec import scene_spec
 from .techniques import base as _techniques
 from .techniques.base import ShadowResult
 
 __all__ = ["load_scene", "make_frame", "render_technique", "visibility", "load_reference", "compare", "gate_image",
-           "techniques_for"]
+           "techniques_for", "shaded_image", "load_preset"]
 
 
 def load_scene(scene: str, *, resolution: tuple | None = None, frame: int | None = None):
@@ -160,3 +165,57 @@ def techniques_for(scene=None) -> dict:
     spec = None if scene is None else getattr(scene, "spec", None) or scene_spec(scene)
     return {n: (None if spec is None else t.unsupported(spec)) or t.unavailable()
             for n, t in ((n, _techniques.get(n)) for n in _techniques.names())}
+
+
+def shaded_image(frame: FrameContext, visibility=None) -> np.ndarray:
+    """The shaded image (H, W, 3) Σ_L U_L·V_L that ``shadowlab compare`` measures: the frame's
+    unshadowed light U_L of each light times its visibility V_L, summed over the lights.
+    ``visibility``: a technique's result (:func:`render_technique`; its coloured visibility where it
+    has one), or {light: (H, W) image} from anywhere, e.g. your engine (one value per pixel, applied
+    to each of its sub-pixels); None: every light unshadowed (V = 1). A light left out of the dict is
+    unshadowed too.
+
+    >>> fr = make_frame(load_scene("contact", resolution=(32, 24)))
+    >>> lit = shaded_image(fr)
+    >>> hard = render_technique(fr, "hard")
+    >>> v = visibility(fr, hard, "key")
+    >>> bool(np.allclose(shaded_image(fr, {"key": v}), shaded_image(fr, hard), atol=1e-6))
+    True
+    >>> bool((shaded_image(fr, hard) <= lit + 1e-6).all()), bool(np.allclose(shaded_image(fr, {"key": 0 * v}), 0))
+    (True, True)
+    """
+    lights = [l.name for l in frame.lights]
+    if isinstance(visibility, ShadowResult):
+        return compose(frame, visibility.visibility, visibility.colour)
+    vis = dict(visibility or {})
+    unknown = sorted(set(vis) - set(lights))
+    if unknown:
+        raise InputError(f"no light {unknown[0]!r} in this frame; its lights: {', '.join(lights)}")
+    gb = frame.gbuffer
+    flat = {}
+    for name in lights:
+        img = np.asarray(vis.get(name, 1.0), dtype=np.float32)
+        if img.ndim == 0:
+            img = np.full((gb.height, gb.width), float(img), np.float32)
+        if img.shape != (gb.height, gb.width):
+            raise InputError(f"visibility of light {name!r} is {img.shape}, not the frame's (H, W) = "
+                             f"{(gb.height, gb.width)}")
+        flat[name] = np.repeat(img.reshape(-1), gb.ss * gb.ss)
+    return compose(frame, flat)
+
+
+def load_preset(path) -> dict:
+    r"""The values of a preset file (TOML or JSON, e.g. the ``preset.toml`` of ``shadowlab fit``):
+    {technique: {parameter: value}}, each value validated by its technique's declaration; pass a
+    technique's to :func:`render_technique`. InputError (exit 2) names the file and the problem.
+
+    >>> import pathlib, tempfile
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "preset.toml"
+    >>> _ = p.write_text('name = "soft"\n[pcss]\nlight_scale = 0.75\n[pcf]\nkernel = 5\n')
+    >>> load_preset(p)
+    {'pcss': {'light_scale': 0.75}, 'pcf': {'kernel': 5}}
+    >>> fr = make_frame(load_scene("contact", resolution=(32, 24)))
+    >>> sorted(render_technique(fr, "pcss", **load_preset(p)["pcss"]).visibility)
+    ['key']
+    """
+    return {t: dict(v) for t, v in _load_preset(path).values.items()}

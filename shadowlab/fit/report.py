@@ -13,6 +13,7 @@ import html as _html
 import json
 import math
 import re
+import shlex
 import textwrap
 from pathlib import Path
 from urllib.parse import quote
@@ -24,6 +25,7 @@ from ..io.png import encode_png
 from ..report import images as _im
 from ..report.jsonable import to_jsonable
 from ..io.outdir import claim_dir, write_dir
+from ..reference.location import chosen as chosen_store
 from . import preset as P
 
 OUTPUT_FILES = ("fit.json", "summary.md", "preset.toml", "index.html")
@@ -101,9 +103,45 @@ def scene_rows(run: dict) -> list:
     return [(t, n, e) for t, r in run["techniques"].items() for n, e in (r.get("scenes") or {}).items()]
 
 
-def summary_table(run: dict) -> str:
+def compare_command(run: dict, preset) -> str:
+    """The command that compares with the fitted ``preset`` file, as it can be pasted: the (first)
+    scene as the user gave it (``scene_arg``: a built-in name, else its file's path, quoted for the
+    shell by :func:`shadowlab.reference.store.scene_arg`), the fit's resolution and frames, and the
+    store ``--references`` chose.
+
+    >>> compare_command({"scene": "studio", "scene_arg": "'my scenes/studio.toml'", "resolution": [64, 48],
+    ...                  "frame": 2}, "out/preset.toml")
+    "shadowlab compare 'my scenes/studio.toml' --preset out/preset.toml -r 64x48 --frame 2"
+    """
+    first = (run.get("scenes") or [None])[0]
+    scene = first["scene"] if first else run.get("scene_arg", run["scene"])
+    w, h = first["resolution"] if first else run["resolution"]
+    frames = [f for f in (first["frames"] if first else run.get("frames", [run.get("frame")])) if f is not None]
+    words = ["--preset", str(preset), "-r", f"{w}x{h}"]
+    if len(frames) == 1:
+        words += ["--frame", str(frames[0])]
+    elif frames:
+        words += ["--frames", f"{min(frames)}:{max(frames)}"]
+    if (store := chosen_store()) is not None:
+        words += ["--references", str(store)]
+    return f"shadowlab compare {scene} {shlex.join(words)}"
+
+
+def _preset_file(run: dict, preset):
+    """The preset file to name: ``preset``, else the report's (``run["out"]`` is its index.html),
+    else ``--save-preset``'s; None when the fit wrote none."""
+    if preset is not None:
+        return preset
+    if run.get("out"):
+        return Path(run["out"]).parent / "preset.toml"
+    return (run.get("preset") or {}).get("path")
+
+
+def summary_table(run: dict, preset=None) -> str:
     """Markdown: one row per technique (fitted values, loss and shaded penumbra RMSE before → after,
-    evaluations, backward passes, kernels compiled / loaded from disk, wall time)."""
+    evaluations, backward passes, kernels compiled / loaded from disk, wall time), then the command
+    that compares with the fitted preset (:func:`compare_command`; ``preset``: its file, default
+    the report's)."""
     lines = [f"# shadowlab fit: {scenes_text(run)}, loss {run['loss']}, method {run['method']}", "",
              "| technique | parameters (start → fitted) | methods | loss before | loss after | "
              "shaded RMSE penumbra before → after | evaluations | backward | kernels compiled / from disk | wall (s) |",
@@ -133,6 +171,8 @@ def summary_table(run: dict) -> str:
     lines += ["", f"Loss: {text}. "
               "Evaluations = technique renders of the search (cached points not counted); backward = Dr.Jit "
               "reverse-mode passes (one per Adam step)."]
+    if (file := _preset_file(run, preset)) is not None:
+        lines += ["", f"Compare with the fitted values: `{compare_command(run, file)}`"]
     return "\n".join(lines) + "\n"
 
 
@@ -303,8 +343,7 @@ def _page(run: dict, img_dir: Path, out: Path) -> str:
          f'{_e(_fmt(run["reference"]["max_std_error"]))}). Loss <code>{_e(run["loss"])}</code>, method '
          f'<code>{_e(run["method"])}</code>. Files: <a href="fit.json">fit.json</a>, '
          f'<a href="summary.md">summary.md</a>, <a href="preset.toml">preset.toml</a> '
-         f'(<code>shadowlab compare {_e(run["scenes"][0]["scene"] if run.get("scenes") else run["scene"])} '
-         f'--preset {_e(out / "preset.toml")}</code>).</p>']
+         f'(<code>{_e(compare_command(run, out / "preset.toml"))}</code>).</p>']
     if run.get("preset_in"):
         p.append(
             f'<p class="note">Started from preset {_e(run["preset_in"]["name"])} ({_e(run["preset_in"]["path"])}).</p>'
@@ -361,7 +400,7 @@ def write(out: Path, run: dict, force: bool = False, protected=()) -> Path:
     def fill(tmp: Path) -> None:
         text = _page(run, tmp / "img", out)
         (tmp / "fit.json").write_text(json.dumps(data, indent=2, allow_nan=False) + "\n", encoding="utf-8")
-        (tmp / "summary.md").write_text(summary_table(run), encoding="utf-8")
+        (tmp / "summary.md").write_text(summary_table(run, out / "preset.toml"), encoding="utf-8")
         (tmp / "preset.toml").write_text(P.to_toml(run["preset"]["name"], run["preset"]["values"],
                                                    P.FIT_DESCRIPTION, P.preset_meta(run)), encoding="utf-8")
         (tmp / "index.html").write_text(text, encoding="utf-8")

@@ -543,7 +543,8 @@ def fit(scene, technique: str | None = None, *, params=None, method: str = "auto
     if not results:
         raise InputError("no technique could be fitted: " + "; ".join(f"{k}: {v}" for k, v in skipped.items()))
     name = sc.name if len(scenes) == 1 else joint_name([ps[0][0].name for ps in per_scene])
-    run = {"scene": name, "resolution": list(sc.resolution), **({} if sc.frame is None else {"frame": sc.frame}),
+    run = {"scene": name, "scene_arg": store.scene_arg(sc.spec),   # how a command names it: built-in name or path
+           "resolution": list(sc.resolution), **({} if sc.frame is None else {"frame": sc.frame}),
            **({"frames": [s_.frame for s_, *_ in per_scene[0]]} if len(per_scene[0]) > 1 else {}),
            **({"scenes": [_scene_entry(ps, base) for ps in per_scene]} if len(scenes) > 1 else {}),
            **({"executor": executor.describe()} if executor is not None and executor.kind != "embedded" else {}),
