@@ -69,6 +69,21 @@ def probe(variant: str, lib: str | None) -> tuple[bool, str]:
     return ok, (r.stderr or r.stdout)[-600:]
 
 
+def probe_reason(tail: str) -> str:
+    """The one line that says why the probe failed: the exception line that ends a Python
+    traceback (the rest is the probe's own frames), else the last line it printed.
+
+    >>> probe_reason('Traceback (most recent call last):\\n  File "<string>", line 3\\nImportError: no CUDA\\n')
+    'ImportError: no CUDA'
+    >>> probe_reason("")
+    'no output'
+    """
+    lines = [l.strip() for l in (tail or "").splitlines() if l.strip()]
+    frames = ("Traceback", "File ", "^", "~")
+    useful = [l for l in lines if not l.startswith(frames)]
+    return (useful or lines or ["no output"])[-1][:300]
+
+
 def init(variant: str | None = None, threads: int | None = None, check: bool = True) -> str:
     """Select the Mitsuba variant once per process and make sure its backend works.
 
@@ -114,10 +129,10 @@ def init(variant: str | None = None, threads: int | None = None, check: bool = T
             ok, tail = probe(variant, lib)
             if not ok:
                 raise EnvironmentProblem(
-                    f"the {variant} backend cannot run a Mitsuba kernel with {lib or 'the default library'}:\n"
-                    f"{tail.strip()}\nFix: {FIX}" if variant.startswith("llvm") else
-                    f"the {variant} backend does not work here:\n{tail.strip()}\n"
-                    "Fix: use --variant llvm_ad_rgb or install a CUDA driver")
+                    f"the {variant} backend cannot run a Mitsuba kernel with {lib or 'the default library'} "
+                    f"({probe_reason(tail)}); {FIX}" if variant.startswith("llvm") else
+                    f"the {variant} backend does not work here ({probe_reason(tail)}); use --variant llvm_ad_rgb, "
+                    "or install a CUDA driver on a machine with an NVIDIA GPU")
             cache.parent.mkdir(parents=True, exist_ok=True)
             cache.write_text(json.dumps({"variant": variant, "lib": lib}))
     mi.set_variant(variant)

@@ -120,6 +120,21 @@ def _finite(image: Path, what: str, a: np.ndarray) -> None:
 
 
 VIS_TOL = 1e-3  # how far outside [0, 1] a visibility channel may stray (half-float round-off)
+#: how far below 0 a radiance may go, as a fraction of the image's largest magnitude (round-off)
+NEG_TOL = 1e-4
+
+
+def _non_negative(image: Path, what: str, a: np.ndarray) -> None:
+    """Radiance is never negative: values below ``-NEG_TOL × max|a|`` mean a difference image, a
+    denoiser's ringing or the wrong layer, which would compare as a plausible error."""
+    bad = a < -NEG_TOL * max(float(np.abs(a).max()), 1e-30)
+    n = int(bad.any(axis=-1).sum()) if a.ndim == 3 else int(bad.sum())
+    if n:
+        y, x = (int(v) for v in np.argwhere(bad)[0][:2])
+        raise InputError(f"{image}: {what} is meant to be radiance (never negative) but {n} pixel"
+                         f"{'s have' if n != 1 else ' has'} negative values (minimum {a.min():.4g}, the first at "
+                         f"x={x}, y={y}); give the direct light itself (clamp a denoiser's output at 0), not a "
+                         "difference image or another layer")
 
 
 def _in_unit_range(image: Path, name: str, a: np.ndarray) -> None:
@@ -212,6 +227,7 @@ def ingest(scene, image, *, channels=(), shaded: bool = False, layer: str | None
         raise ReferenceError_(f"{image} is {W}x{H}: {e}") from None
     if shaded:
         _finite(image, f"the RGB image ({', '.join(rgb_names)})", img)
+        _non_negative(image, f"the RGB image ({', '.join(rgb_names)})", img)
     else:
         for light, (name, a) in picked.items():
             _finite(image, f"channel {name!r}", a)
