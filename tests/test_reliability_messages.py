@@ -3,8 +3,8 @@
 * a preset given where a scene is expected says it is a preset and names ``--preset``;
 * an "already exists" fix names the path the user gave for a scene file, not its ``name``;
 * every parameter an example in fit's messages and the preset format names is a declared Param;
-* several scenes that are the same reference are rendered once, with a note, in this process and
-  on a Dask cluster alike;
+* several scenes that are the same reference are refused before any work (as fit and sweep do),
+  in this process and on a Dask cluster alike;
 * a reader that arrives while a writer swaps the reference in (between the two renames of the
   fallback) waits for it instead of being told there is no reference.
 """
@@ -86,20 +86,15 @@ def test_every_parameter_an_example_names_is_declared():
     assert len(named) == 4 and set(named) <= declared, (named, sorted(declared))
 
 
-def test_the_same_scene_twice_is_rendered_once_with_a_note(tmp_path, base, capsys):
+@pytest.mark.parametrize("workers", [[], ["--workers", "2"]], ids=["in-process", "dask"])
+def test_the_same_scene_twice_is_refused_before_any_work(workers, tmp_path, base, capsys):
+    """As fit and sweep do, in this process and on a cluster alike (was exit 0 in process, exit 2
+    with a Dask dump on the cluster): exit 2 before any work, nothing stored."""
     scene = _scene(tmp_path)
-    rc, out, err = _run(["reference", scene, scene, *FAST], capsys)
-    assert rc == 0, err
-    assert out.count("reference written") == 1 and "given twice" in err, (out, err)
-    (d,) = [p.parent for p in base.rglob("meta.json")]
-    assert d == store.path_for("tiny", (16, 16), base)
-
-
-def test_the_same_scene_twice_on_a_cluster_matches_in_process(tmp_path, base, capsys, dask_workers):
-    scene = _scene(tmp_path)
-    rc, out, err = _run(["reference", scene, str(scene), "--workers", "2", *FAST], capsys)
-    assert rc == 0, err
-    assert out.count("reference written") == 1 and "given twice" in err, (out, err)
+    rc, out, err = _run(["reference", scene, str(scene), *workers, *FAST], capsys)
+    assert rc == 2 and f"scene {scene} is given twice" in err and "name each scene once" in err, (out, err)
+    assert len(err.strip().splitlines()) == 1 and "reference written" not in out
+    assert list(base.rglob("meta.json")) == []
 
 
 # the fallback save (no renameat2) of tests/test_store_faults.py, paused between its two renames

@@ -102,10 +102,10 @@ def reference_jobs(scenes: list[str], resolution=None, frames=None, *, frame: in
         for f in todo:
             s_ = sc if f is None else sc.at_frame(f)
             dest = store.path_for(s_.name, s_.resolution, base, create=True, frame=s_.frame)
-            if str(dest) in given:   # the same reference twice (a name and its file, a repeated argument): once
-                print(f"note: {scene} is given twice (as {given[str(dest)]} too): its reference at {dest} is "
-                      "rendered once", file=sys.stderr)
-                continue
+            if str(dest) in given:   # as fit and sweep: refused before any work, in process and on a cluster alike
+                twice = "" if given[str(dest)] == scene else f" (as {given[str(dest)]} too)"
+                raise InputError(f"scene {scene} is given twice{twice}: both are the reference at {dest}; name each "
+                                 "scene once")
             given[str(dest)] = scene
             store.check_writable(dest, force, store.scene_arg(s_.spec), s_.resolution)
             jobs.append(ReferenceJob(scene, tuple(sc.resolution), f, seed, target_se, strata, max_rounds, spp, ss,
