@@ -127,10 +127,11 @@ def test_one_browser_evaluates_many_points_and_filters_in_between(engine, contac
 def test_a_fit_of_the_engine_lowers_its_error_and_saves_its_own_names(engine, tmp_path):
     from shadowlab.fit import run as R
     sc, truth, meta, frame = R.prepare("contact")
-    p = R.plan("three:pcf", frame, params=["bias", "radius"])
-    r = R.execute(p, frame, truth, R.Budget(evals=6, rounds=1))
-    assert r["loss_after"] < 0.5 * r["loss_before"], (r["loss_before"], r["loss_after"])   # measured 0.356 -> 0.087
+    p = R.plan("three:pcf", frame, params=["bias", "radius"], ranges={"bias": (-0.005, 0.0)})
+    r = R.execute(p, frame, truth, R.Budget(evals=8, rounds=1))
+    assert r["loss_after"] < 0.5 * r["loss_before"], (r["loss_before"], r["loss_after"])   # measured 0.356 -> 0.085
     assert r["params"]["bias"]["fitted"] < 0 and set(r["params"]) == {"bias", "radius"}
+    assert r["params"]["bias"]["start"] == 0.0 and r["params"]["radius"]["start"] == 1.0   # from the defaults
 
 
 def test_a_gate_fails_when_the_engine_bias_is_broken(engine, tmp_path):

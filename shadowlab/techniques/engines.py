@@ -85,10 +85,11 @@ class Session:
         url = self.server.put("/scene/scene.glb", glb)
         try:
             self.browser.open(f"{self.server.url}/page/{html}", timeout=LOAD_TIMEOUT)
-            ready = self.browser.js("new Promise((ok) => { const t0 = Date.now(); (function wait() { "
-                                    "if (window.shadowlab && window.shadowlab.ready) ok(true); "
-                                    "else if (Date.now() - t0 > 110000) ok(false); else setTimeout(wait, 20); })(); })",
-                                    timeout=LOAD_TIMEOUT)
+            ready, t0 = False, time.monotonic()
+            while not ready and time.monotonic() - t0 < LOAD_TIMEOUT and not self.browser.errors():
+                ready = self.browser.js("!!(window.shadowlab && window.shadowlab.ready)")
+                if not ready:
+                    time.sleep(0.05)
             if not ready:
                 raise browser_mod.BrowserError("the page's script did not start")
             self.info = self.browser.js(f"window.shadowlab.load({json.dumps({**config, 'glb': url})})",
