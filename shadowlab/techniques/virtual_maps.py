@@ -31,8 +31,12 @@ the view itself, the demand and the ``visible`` focus, reads the frame's own vie
    projected into the map's NDC, its bounding box has half extents Δ_x, Δ_y, and a map of 1/Δ
    texels across [−1, 1] gives that pixel one texel. The demand level is
    L = round(−log2 Δ + ½) (rounding half up: floor(−log2 Δ + 1), the byte [Giegl 2007] stores as L/256),
-   so 2^L > 1/Δ. The SMTMM samples every ``smtmm_scale``-th pixel (the pixel at each block's
-   centre): 256² for a 1024² frame at the default 4 (§5).
+   so 2^L > 1/Δ. The source prints −log2(round(Δ + (0.5, 0.5)))/256, which cannot be meant as
+   written (a Δ below 1 rounds to 0 or 1, whose logarithm is −∞ or 0, for every pixel); with the
+   rounding around the logarithm, as here, the level is the smallest whose map has more than 1/Δ
+   texels across, so every pixel gets at least one texel (§4.3's sub-pixel accuracy), where
+   round(−log2 Δ) would let a texel grow to √2 pixels. The SMTMM samples every ``smtmm_scale``-th
+   pixel (the pixel at each block's centre): 256² for a 1024² frame at the default 4 (§5).
 2. *SMTG* (§4.4, the tile grid): ``grid`` × ``grid`` cells over the map; per cell and axis the
    maximum level, the screen rectangle of its SMTMM pixels, and a histogram of pixel counts per
    level with every level below η0 in one bucket and every level above η1 in another
