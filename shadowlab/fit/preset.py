@@ -88,7 +88,7 @@ def from_dict(data, path: str = "<preset>") -> Preset:
     for tech, params in data.items():
         if tech in RESERVED:
             continue
-        if tech not in base.names():
+        if tech not in base.names() and not base.composes(tech):
             known = list(base.names()) + list(RESERVED)
             raise InputError(f"preset {path}: unknown technique {tech!r}{did_you_mean(tech, known)}; a preset's "
                              f"top-level keys are {', '.join(RESERVED)} and technique names: "

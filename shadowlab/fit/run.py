@@ -9,6 +9,7 @@ and the fitted values once more for the report's metrics and images, and writes 
 from __future__ import annotations
 
 import math
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -127,7 +128,9 @@ def parse_ranges(items, techniques: list[str]) -> dict:
         if "=" not in it or ":" not in it.split("=", 1)[1]:
             raise InputError(f"--range {it!r}: expected [TECHNIQUE.]PARAM=LO:HI, e.g. light_scale=0.2:3")
         key, val = it.split("=", 1)
-        if "." in key:
+        if len(techniques) == 1 and "." in key and key in {p.name for p in tbase.get(techniques[0]).params}:
+            tech, pname = techniques[0], key          # LIGHT.PARAM of a technique per light
+        elif "." in key:
             tech, pname = key.split(".", 1)
         elif len(techniques) == 1:
             tech, pname = techniques[0], key
@@ -472,7 +475,8 @@ def joint_name(scenes: list[str], limit: int = 48) -> str:
 
 def default_out(scene, technique: str | None, all_techniques: bool = False) -> str:
     """``reports/fit/<scene>-<technique>``; several scenes: ``<s1>+<s2>…`` (:func:`joint_name`)."""
-    return f"reports/fit/{joint_name(scene_names(scene))}-{'all' if all_techniques else technique or 'fit'}"
+    name = "all" if all_techniques else re.sub(r"[^A-Za-z0-9_.+-]+", "_", technique or "fit")
+    return f"reports/fit/{joint_name(scene_names(scene))}-{name}"
 
 
 def fit(scene, technique: str | None = None, *, params=None, method: str = "auto", loss: str | None = None,
