@@ -109,6 +109,10 @@ LIGHT_CONVENTION = {
                      "diameter in RADIANS; 0 = a delta light",
     "ply": "the emitting geometry (area lights only), world space, triangles wound counter-clockwise around the "
            "emitting side's normal; null for delta lights",
+    "irradiance": "directional lights: the scene's irradiance (W m^-2, scalar and RGB) on a surface facing the "
+                  "light: an engine's directional light intensity",
+    "engine_draws": "false for a directional light's far disk (its ply, with ply_note): Mitsuba's stand-in for the "
+                    "sun, never drawn by an engine",
     "shadow_camera": "the light camera of the depth map shadowlab's hard technique samples (default parameters, map "
                      "size = the light's shadow_map, depth format = its depth_bits): per face direct3d (left-handed "
                      "view looking down +z, clip z 0..1, viewport row 0 = ndc y +1 = shadowlab's texel row 0), opengl "
@@ -205,6 +209,15 @@ def _translate(p) -> np.ndarray:
     return M
 
 
+#: lights.json: what a directional light's ``irradiance`` is
+SUN_IRRADIANCE = ("the scene's irradiance on a surface facing the light (normal along -direction), per RGB channel: "
+                  "an engine's directional light intensity; the far disk's radiance (emission) is derived from it")
+#: lights.json and the PLY's comment: the sun's emitter disk is Mitsuba's stand-in, not scene geometry
+SUN_DISK_NOTE = ("Mitsuba's stand-in for the sun: a disk of radius {r:.4g} m at {d:.4g} m that subtends the angular "
+                 "diameter, its radiance giving the irradiance; an engine must not draw it (light the scene with "
+                 "direction and irradiance)")
+
+
 def light_info(light, mitsuba_dict: dict, ply: str | None) -> dict:
     """lights.json entry of one LightSpec and the Mitsuba dict it becomes."""
     qty, value = lights_mod.emission(light)
@@ -267,12 +280,17 @@ def light_info(light, mitsuba_dict: dict, ply: str | None) -> dict:
         a = float(light.angular_diameter)
         info["size"] = {"angular_diameter_deg": a, "angular_diameter_rad": math.radians(a)}
         info["direction"] = [float(x) for x in lights_mod.forward(light)]
+        E = float(light.irradiance if light.irradiance is not None else light.power)
+        info["irradiance"] = {"value": E, "rgb": [float(c * E) for c in light.color], "units": "W m^-2",
+                              "meaning": SUN_IRRADIANCE}
         if a > 0:
             r = float(np.linalg.norm(to_world[:3, 0]))
             info["size"]["disk_radius"] = r
             info["size"]["disk_distance"] = r / math.tan(math.radians(a) / 2)
             info["emits"] = ("+z side of pose: a disk far away subtending the angular diameter "
                              "(radiance = irradiance / (pi sin^2(theta/2)))")
+            info["engine_draws"] = False
+            info["ply_note"] = SUN_DISK_NOTE.format(r=r, d=info["size"]["disk_distance"])
         else:
             info["emits"] = "parallel light along direction"
     return info
@@ -470,7 +488,8 @@ def export_scene(scene, out, *, resolution=None, segments: int = 64, spp: int = 
                     UV,
                     F,
                     comment=f"shadowlab export of scene {spec.name}, light {l.name} ({l.kind}), emits along the "
-                            f"normals",
+                            f"normals" + ("; not for drawing in an engine: the far disk standing in for the sun"
+                                          if l.kind == "directional" else ""),
                 )
                 mesh_files[f"light_{l.name}"] = rel
             info = light_info(l, ld, rel)
