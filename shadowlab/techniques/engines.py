@@ -41,6 +41,7 @@ import numpy as np
 from ..errors import EnvironmentProblem, InputError
 from ..io import browser as browser_mod
 from ..scene import gltf
+from ..render.gbuffer import vec_numpy
 from ..scene import lights as lights_mod
 from .base import ShadowResult, Technique, needs_mitsuba_geometry
 
@@ -75,6 +76,8 @@ class Session:
         self.server = browser_mod.serve({"node_modules": node_modules(), "page": PAGES})
         self.browser = browser_mod.Browser(Path(self.dir.name) / "profile", size=(256, 256), webgl=True)
         self.key, self.info = None, None
+        #: (page key, light) -> the engine's unshadowed white-Lambert light at the points (N, 3)
+        self.lit = {}
 
     def page(self, key, html: str, config: dict, glb: bytes) -> dict:
         """Load ``html`` with ``config`` (its ``glb`` URL set here) unless ``key`` is what is loaded;
@@ -147,6 +150,26 @@ def decode(b64: str, width: int, height: int) -> np.ndarray:
     if a.size != width * height:
         raise EnvironmentProblem(f"the engine page returned {a.size} values for a {width}x{height} image")
     return a.reshape(height, width)[::-1].copy()
+
+
+def decode_rgb(b64: str, width: int, height: int) -> np.ndarray:
+    """:func:`decode` of an RGB read-back (3 floats per pixel) -> (H, W, 3), top row first."""
+    a = np.frombuffer(base64.b64decode(b64), dtype="<f4")
+    if a.size != 3 * width * height:
+        raise EnvironmentProblem(f"the engine page returned {a.size} values for a {width}x{height} RGB image")
+    return a.reshape(height, width, 3)[::-1].copy()
+
+
+def direct_ratio(engine_direct: np.ndarray, truth_unshadowed: np.ndarray) -> float:
+    """Median over the lit points of the engine's unshadowed direct light over the truth's ``U_L``
+    (channel sums): 1 where the engine's Lambertian light matches the truth's emitter.
+
+    >>> direct_ratio(np.array([[2.0, 0, 0], [1, 1, 0], [0, 0, 0]]), np.array([[1.0, 0, 0], [1, 0, 0], [0, 0, 0]]))
+    2.0
+    """
+    e, u = engine_direct.sum(1), truth_unshadowed.sum(1)
+    m = u > 1e-6 * max(float(u.max()), 1e-30)
+    return float(np.median(e[m] / u[m])) if m.any() else float("nan")
 
 
 def to_points(img: np.ndarray, ss: int) -> np.ndarray:
@@ -233,16 +256,25 @@ class EngineTechnique(Technique):
         wall = time.perf_counter() - t0
         gb = frame.gbuffer
         W, H = gb.width * gb.ss, gb.height * gb.ss
-        vis, lights = {}, {}
+        vis, lights, aovs = {}, {}, {}
+        albedo = gb.albedo.reshape(-1, 3)
         for l, r, maps in zip(frame.lights, out["lights"], out["maps"]):
             flat = to_points(decode(r["vis"], W, H), gb.ss)
             v = mi.Float(flat.astype(np.float32))
             vis[l.name] = dr.select(gb.valid, v, 1.0)
             lights[l.name] = {"maps": maps, "above_one": int(r["above_one"])}
+            if "lit" in r:
+                sess.lit[(sess.key, l.name)] = np.stack([to_points(c, gb.ss) for c in
+                                                         decode_rgb(r["lit"], W, H).transpose(2, 0, 1)], 1)
+            lit = sess.lit.get((sess.key, l.name))
+            if lit is not None:
+                direct = albedo * lit                   # the engine's unshadowed Lambertian direct light
+                aovs[f"{l.name}.engine_direct"] = gb.to_image(direct * flat[:, None])
+                lights[l.name]["direct_ratio"] = direct_ratio(direct, vec_numpy(frame.unshadowed[l.name]))
         dr.eval(*vis.values())
         stats = {"engine": {"package": self.engine, "version": version, "shadow_type": self.shadow_type,
                             "renderer": info.get("renderer", ""), "page_ms": float(out["ms"]),
                             "render_s": wall},
                  "lights": lights}
-        return ShadowResult(visibility=vis, stats=stats, technique=self)
+        return ShadowResult(visibility=vis, aovs=aovs, stats=stats, technique=self)
 

@@ -139,7 +139,8 @@ async function load(cfg) {
     BABYLON.Constants.TEXTUREFORMAT_RGBA);
   rt.clearColor = new BABYLON.Color4(0, 0, 0, 0);
   camera.outputRenderTarget = rt;
-  Object.assign(S, { cfg, engine, scene, camera, meshes, materials, lights, rt, W, H, gen: null, centre, radius });
+  Object.assign(S, { cfg, engine, scene, camera, meshes, materials, lights, rt, W, H, gen: null, centre, radius,
+                     sentLit: new Set() });
   return { version: BABYLON.Engine.Version, webgl2: engine.webGLVersion === 2, near: camera.minZ, far: camera.maxZ,
            lights: lights.map((l) => l.light.getClassName()), sphere: [centre.x, centre.y, centre.z, radius] };
 }
@@ -217,7 +218,15 @@ async function render(p) {
     maps.push(Array.from({ length: count }, () => ({ resolution: gen.getShadowMap().getSize().width })));
     gen.dispose();
     [light.shadowMinZ, light.shadowMaxZ] = saved;
-    out.push({ name: entry.name, vis: b64(v), above_one: bad });
+    const item = { name: entry.name, vis: b64(v), above_one: bad };
+    if (!S.sentLit.has(entry.name)) {
+      // the unshadowed white-Lambert light (RGB), once per light and page: the engine's own direct light
+      const rgb = new Float32Array(3 * n);
+      for (let k = 0; k < n; k++) { rgb[3 * k] = lit[4 * k]; rgb[3 * k + 1] = lit[4 * k + 1]; rgb[3 * k + 2] = lit[4 * k + 2]; }
+      item.lit = b64(rgb);
+      S.sentLit.add(entry.name);
+    }
+    out.push(item);
   }
   return { lights: out, maps, ms: performance.now() - t0 };
 }

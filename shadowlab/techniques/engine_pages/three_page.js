@@ -136,7 +136,7 @@ async function load(cfg) {
     minFilter: THREE.NearestFilter, magFilter: THREE.NearestFilter, depthBuffer: true, samples: 0,
     colorSpace: THREE.NoColorSpace });
   Object.assign(S, { cfg, renderer, scene, camera, meshes, materials, lights, rt, W, H, sphere, csm: null,
-                     lit: new Float32Array(W * H * 4), shadowed: new Float32Array(W * H * 4) });
+                     lit: new Float32Array(W * H * 4), shadowed: new Float32Array(W * H * 4), sentLit: new Set() });
   const gl = renderer.getContext();
   return { revision: THREE.REVISION, webgl2: gl instanceof WebGL2RenderingContext,
            renderer: gl.getParameter(gl.RENDERER), near: camera.near, far: camera.far,
@@ -212,7 +212,15 @@ function render(p) {
                      : [{ resolution: entry.light.shadow.mapSize.x, near: entry.light.shadow.camera.near,
                           far: entry.light.shadow.camera.far }];
     maps.push(sm);
-    out.push({ name: entry.name, vis: b64(v), above_one: bad });
+    const item = { name: entry.name, vis: b64(v), above_one: bad };
+    if (!S.sentLit.has(entry.name)) {
+      // the unshadowed white-Lambert light (RGB), once per light and page: the engine's own direct light
+      const rgb = new Float32Array(3 * n);
+      for (let k = 0; k < n; k++) { rgb[3 * k] = lit[4 * k]; rgb[3 * k + 1] = lit[4 * k + 1]; rgb[3 * k + 2] = lit[4 * k + 2]; }
+      item.lit = b64(rgb);
+      S.sentLit.add(entry.name);
+    }
+    out.push(item);
     if (S.csm) { S.csm.remove(); S.csm = null; }
   }
   return { lights: out, maps, ms: performance.now() - t0 };
