@@ -212,3 +212,16 @@ def test_decode_and_point_order():
     assert np.array_equal(decode(base64.b64encode(img[::-1].tobytes()).decode(), 4, 3), img)
     assert to_points(img[:2], 2).tolist() == [0.0, 1.0, 4.0, 5.0, 2.0, 3.0, 6.0, 7.0]
     assert json.dumps(decode(base64.b64encode(np.ones(12, np.float32).tobytes()).decode(), 4, 3).tolist())
+
+
+def test_technique_names_with_a_colon_pass_every_parser():
+    """TECH.PARAM=VALUE, [TECH.]PARAM=LO:HI and NAME=LO:HI:N split at the first '.' and '=' and on
+    ':' only after '=', so ``three:pcf`` is a technique name like any other."""
+    from shadowlab.fit.run import parse_ranges
+    from shadowlab.sweep.points import parse_range
+    assert parse_range("three:pcf.radius=0:4:3", "three:pcf").values == (0.0, 2.0, 4.0)
+    assert parse_range("bias=-0.002:0:2", "three:pcf").values == (-0.002, 0.0)
+    assert parse_ranges(["three:pcf.bias=-0.005:0", "radius=0.5:3"], ["three:pcf"]) == \
+        {"three:pcf": {"bias": (-0.005, 0.0), "radius": (0.5, 3.0)}}
+    with pytest.raises(InputError, match="names technique 'babylon:pcf'"):
+        parse_range("babylon:pcf.bias=0:0.01:3", "three:pcf")
