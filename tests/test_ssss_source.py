@@ -234,3 +234,17 @@ def test_a_penumbra_map_below_16_bits_bands(mitsuba_backend):
     assert np.all(np.abs(h[nz] - s[nz]) <= s[nz] * 2.0 ** -11)
     assert len(np.unique(b)) == 256 and np.abs(b - s).max() <= 0.37 / 510 * 1.0001
     assert np.allclose(np.unique(b) / (0.37 / 255), np.round(np.unique(b) / (0.37 / 255)), atol=1e-3)
+
+
+def test_the_sources_normalised_depth_threshold_scales_with_the_scenes_depth_span(card):
+    """``depth_scale = "normalised"``: a tap is rejected where |z_tap − z| > threshold · (z1 − z0),
+    z1 − z0 the view depths the scene spans (the source's 0.03 on a [0, 1] depth): the card, 2.2–6.8 m
+    nearer than the floor beside it, is rejected at a tolerance of 1 m and kept at 7.7 m (span
+    13.9 m: threshold 0.55, which the relative reading, 0.55·z < the gap everywhere, rejects)."""
+    z0, z1 = card.camera.depth_range(card.scene.center, card.scene.radius)
+    near = _near_card(card)
+    img = card.gbuffer.to_image
+    p = {"kernel": 23, "depth_plane": False, "depth_scale": "normalised"}
+    v = {tol: img(get("ssss").render(card, {**p, "depth_threshold": tol / (z1 - z0)}).visibility["panel"].numpy())
+         for tol in (1.0, 7.7)}
+    assert v[1.0][near].max() < 0.02 and v[7.7][near].max() > 0.2

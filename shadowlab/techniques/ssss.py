@@ -48,7 +48,11 @@ Per frame:
    variance). Tap i = −R … R (R = (kernel − 1)/2) sits at i·3σ/R pixels with weight exp(−½(3i/R)²),
    read bilinearly between the two pixels around it; a pixel whose view depth differs from the
    centre's by more than ``depth_threshold`` × the centre's depth is rejected (the source's 0.03;
-   its depth is normalised, shadowlab's relative threshold is its scale-free reading). A pixel of
+   its depth is normalised, shadowlab's relative threshold is its scale-free reading;
+   ``depth_scale`` = ``normalised`` multiplies the threshold by the view depths the scene spans
+   instead, and ``depth_plane`` = False compares with the centre's own depth as the source does:
+   on the built-in scenes the defaults are the closer to the truth on the whole,
+   ``docs/families/ssss.md``). A pixel of
    size 0 keeps its own value (no blur), so with every size 0 ``ssss`` is ``hard`` bit for bit.
    ``half_resolution``: the layer is blurred on a half-resolution grid whose pixels are the
    4-tap gather (mean) of the 2×2 full-resolution hard shadows below them (depth: their mean,
@@ -127,6 +131,9 @@ SSSS_PARAMS = (
           doc="taps per pass of the separable Gaussian (5, 11 typical, 23)"),
     Param("depth_threshold", 0.03, "float", 0.0, 1000.0, "× centre view depth", False, source="[Tamás 2015, §7]",
           doc="a tap whose view depth differs from the centre's by more than this × the centre's is rejected"),
+    Param("depth_scale", "relative", "choice", choices=("relative", "normalised"), source="[Tamás 2015, §7]",
+          doc="what the threshold multiplies: the centre's view depth (relative, scale-free) or the view depths "
+              "the scene spans (normalised: the source's threshold on a [0, 1] depth)"),
     Param("depth_plane", True, "bool", source="[Tamás 2015, §7]",
           doc="compare a tap's depth with the centre's tangent plane at the tap (not in the source) instead of "
               "the centre's depth: a tilted receiver keeps its taps, a depth discontinuity still rejects them"),
@@ -233,10 +240,11 @@ class Grid:
         return dr.select((dr.abs(den) > 1e-6) & (zp > 0), zp, self.z)
 
 
-def _blur_pass(v, sigma, g: Grid, axis: str, kernel: int, thr, plane: bool):
+def _blur_pass(v, sigma, g: Grid, axis: str, kernel: int, thr, plane: bool, span=None):
     """One separable pass on grid ``g``: taps at i·3σ/R pixels along ``axis`` (bilinear between the
     two pixels around each), weights exp(−½(3i/R)²), a tap rejected where its view depth differs
-    by more than thr·z from the centre's (``plane``: from the centre's tangent plane at the tap).
+    by more than thr·z from the centre's (``plane``: from the centre's tangent plane at the tap;
+    ``span``: by more than thr·span, the source's threshold on normalised depth).
     Pixels with σ = 0 (or no accepted tap) keep their value."""
     R = (kernel - 1) // 2
     x, y, z = g.x, g.y, g.z
@@ -244,7 +252,7 @@ def _blur_pass(v, sigma, g: Grid, axis: str, kernel: int, thr, plane: bool):
     acc = dr.zeros(mi.Float, dr.width(v))
     wsum = dr.zeros(mi.Float, dr.width(v))
     step = sigma * (3.0 / R)
-    tol = thr * z
+    tol = thr * (z if span is None else span)
     for i in range(-R, R + 1):      # the kernel's fixed taps, unrolled (not a loop over pixels)
         wi = math.exp(-0.5 * (3.0 * i / R) ** 2)
         t = pos + step * i
@@ -279,16 +287,16 @@ def full_grid(screen) -> Grid:
                 pn, pc, screen.index)
 
 
-def blur_full(screen, v, sigma, kernel: int, thr, plane: bool):
+def blur_full(screen, v, sigma, kernel: int, thr, plane: bool, span=None):
     """The two passes on the screen's (sub-)pixel grid, G-buffer order."""
     g = full_grid(screen)
     for axis in ("x", "y"):
-        v = _blur_pass(v, sigma, g, axis, kernel, thr, plane)
+        v = _blur_pass(v, sigma, g, axis, kernel, thr, plane, span)
         dr.eval(v)
     return v
 
 
-def blur_half(screen, v, sigma, kernel: int, thr, plane: bool):
+def blur_half(screen, v, sigma, kernel: int, thr, plane: bool, span=None):
     """Blur on the half-resolution grid (4-tap gather down, depth-aware bilinear up); the module
     docstring, step 5."""
     Wh, Hh = (screen.width + 1) // 2, (screen.height + 1) // 2
@@ -319,7 +327,7 @@ def blur_half(screen, v, sigma, kernel: int, thr, plane: bool):
     dr.eval(hv, hz, hok, hs, pn, pc)
     g = Grid(screen.camera, Wh, Hh, X, Y, hz, hok, pn, pc, hindex)
     for axis in ("x", "y"):
-        hv = _blur_pass(hv, hs, g, axis, kernel, thr, plane)
+        hv = _blur_pass(hv, hs, g, axis, kernel, thr, plane, span)
         dr.eval(hv)
     # up: bilinear over the 2×2 half pixels around the full pixel's centre, with depth rejection
     fx = (mi.Float(screen.x) + 0.5) * 0.5 - 0.5
@@ -331,7 +339,7 @@ def blur_half(screen, v, sigma, kernel: int, thr, plane: bool):
     for dx, dy, w in ((0, 0, (1 - ax) * (1 - ay)), (1, 0, ax * (1 - ay)), (0, 1, (1 - ax) * ay), (1, 1, ax * ay)):
         idx = hindex(mi.Int32(x0) + dx, mi.Int32(y0) + dy)
         zk = dr.gather(mi.Float, hz, idx)
-        take = dr.gather(mi.Bool, hok, idx) & (dr.abs(zk - z) <= thr * z)
+        take = dr.gather(mi.Bool, hok, idx) & (dr.abs(zk - z) <= thr * (z if span is None else span))
         w = dr.select(take, w, 0.0)
         acc += w * dr.gather(mi.Float, hv, idx)
         wsum += w
@@ -530,6 +538,10 @@ class SSSS(ShadowMapTechnique):
         fwd = mi.Vector3f(*[float(x) for x in scr.camera.forward])
         nz = dr.maximum(dr.dot(scr.normal, -fwd), NZ_FLOOR)
         thr = dr.opaque(mi.Float, float(values["depth_threshold"]))
+        span = None
+        if values["depth_scale"] == "normalised":   # the view depths the scene spans, as a depth buffer's [0, 1]
+            z0, z1 = scr.camera.depth_range(frame.scene.center, frame.scene.radius)
+            span = dr.opaque(mi.Float, float(z1 - z0))
         kernel = int(values["kernel"])
         blurred, fpx, tints = [], [], []
         fn = blur_half if values["half_resolution"] else blur_full
@@ -537,12 +549,13 @@ class SSSS(ShadowMapTechnique):
             F = dr.select(scr.valid, ls[L] * dr.sqrt(nz) * P / dr.maximum(scr.depth, 1e-12), 0.0)
             sigma = F * (1.0 / math.sqrt(12.0))
             dr.eval(F, sigma)
-            b = fn(scr, lv[L], sigma, kernel, thr, bool(values["depth_plane"]))
+            b = fn(scr, lv[L], sigma, kernel, thr, bool(values["depth_plane"]), span)
             dr.eval(b)
             blurred.append(b)
             fpx.append(F)
             if coloured:
-                tb = mi.Color3f(*[fn(scr, c, sigma, kernel, thr, bool(values["depth_plane"])) for c in lt[L][:3]])
+                tb = mi.Color3f(*[fn(scr, c, sigma, kernel, thr, bool(values["depth_plane"]), span)
+                                  for c in lt[L][:3]])
                 dr.eval(tb)
                 tints.append(tb)
         ctx.layering = lay
