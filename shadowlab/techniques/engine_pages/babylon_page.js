@@ -182,8 +182,18 @@ function makeGenerator(type, light, p) {
   const d = BABYLON.Vector3.Distance(light.position, S.centre);
   light.shadowMinZ = p.shadowMinZ > 0 ? p.shadowMinZ : Math.max(0.05, d - S.radius);
   light.shadowMaxZ = p.shadowMaxZ > 0 ? p.shadowMaxZ : d + S.radius * 1.01 + 0.1;
-  for (const m of S.meshes) g.addShadowCaster(m, false);
+  for (const m of S.meshes) if (castsShadows(m)) g.addShadowCaster(m, false);
   return g;
+}
+
+// a shape with casts_shadows = false (the glb node's extras.shadowlab, which the loader keeps in
+// metadata.gltf.extras): drawn and lit, never a caster
+function castsShadows(m) {
+  for (let n = m; n; n = n.parent) {
+    const x = n.metadata && n.metadata.gltf && n.metadata.gltf.extras && n.metadata.gltf.extras.shadowlab;
+    if (x && x.casts_shadows === false) return false;
+  }
+  return true;
 }
 
 async function draw(receive) {

@@ -25,6 +25,16 @@ function b64(f32) {
   return btoa(s);
 }
 
+// a shape with casts_shadows = false (the glb node's extras.shadowlab, which GLTFLoader puts in
+// userData): drawn and lit, never a caster
+function castsShadows(o) {
+  for (let n = o; n; n = n.parent) {
+    const x = n.userData && n.userData.shadowlab;
+    if (x && x.casts_shadows === false) return false;
+  }
+  return true;
+}
+
 function lambert(meshes, type) {
   // a fresh white Lambert material per mesh (fresh: the CSM addon's onBeforeCompile must run for it)
   return meshes.map((o) => {
@@ -89,7 +99,7 @@ async function load(cfg) {
     if (!o.isMesh) return;
     const m0 = o.material;
     o.userData.glTFMaterial = m0;
-    o.castShadow = true;
+    o.castShadow = castsShadows(o);
     o.receiveShadow = true;
     meshes.push(o);
   });
