@@ -93,6 +93,7 @@ def test_the_shadow_of_a_panel_that_casts_is_there_for_the_techniques(frames):
     m = _under(frame)
     why = techniques_for(frame.scene)
     assert "casts_shadows = true" in why["sdf_hard"]        # the panel has no SDF twin
+    assert "casts_shadows = true" in why["three:basic"]     # nor a mesh in the glb the engines load
     for n in ("hard", "pcf", "sm_dpsv_soft", "ssss", *SUN_TECHNIQUES):
         assert why.get(n) is None
         v = visibility(frame, render_technique(frame, n), "sun")[m]

@@ -206,8 +206,11 @@ class EngineTechnique(Technique):
     page_per_type: bool = True
 
     def unsupported(self, spec) -> str | None:
+        casting = [l.name for l in spec.lights if l.casts_shadows]
         return needs_mitsuba_geometry(self.name, spec) or (
-            f"{self.name}: the scene has no lights for the engine to shadow" if not spec.lights else None)
+            f"{self.name}: the scene has no lights for the engine to shadow" if not spec.lights else None) or (
+            f"{self.name}: the panel of light {casting[0]!r} casts shadows (casts_shadows = true), and the glb "
+            "gives the engine its light, not its panel: leave casts_shadows out (the default)" if casting else None)
 
     def unavailable(self) -> str | None:
         try:
