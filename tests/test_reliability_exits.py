@@ -141,6 +141,13 @@ def test_out_where_nothing_can_be_created_is_refused_before_any_work(out, code, 
     assert f"cannot create --out {out}: {words}" in _one_line(err)
 
 
+def test_save_preset_where_nothing_can_be_created_is_refused_before_fitting(tmp_path, capsys):
+    scene = _scene(tmp_path, name="unrendered")
+    rc = cli.main(["fit", str(scene), "-t", "pcss", "--save-preset", "/proc/p.toml", "--out", str(tmp_path / "f")])
+    assert rc == 2 and "cannot create --save-preset /proc/p.toml" in _one_line(capsys.readouterr().err)
+    assert not (tmp_path / "f").exists()
+
+
 def test_write_errors_are_classified_once():
     """The one classification (io.outdir.write_error) the writers and the CLI share."""
     E = outdir.write_error

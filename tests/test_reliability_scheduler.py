@@ -137,3 +137,14 @@ def test_the_probe_knows_a_real_scheduler_and_garbage_in_process():
             ex_mod.probe_tcp(garbage.address, timeout=5)
     finally:
         garbage.close()
+
+
+def test_a_scheduler_without_workers_exits_3_instead_of_waiting_forever(monkeypatch):
+    """A real scheduler that no worker has joined would queue the jobs forever."""
+    from distributed import LocalCluster
+    monkeypatch.setattr(ex_mod, "WORKERS_TIMEOUT_S", 1)
+    with LocalCluster(n_workers=0, processes=False, protocol="tcp://", dashboard_address=":0",
+                      silence_logs=logging.ERROR) as cluster:
+        with pytest.raises(ex_mod.EnvironmentProblem, match="has no workers .*`dask worker "):
+            with ex_mod.open_executor(scheduler=cluster.scheduler_address):
+                pass

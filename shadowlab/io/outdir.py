@@ -198,6 +198,7 @@ def check_out_file(path, option: str, *, force: bool = False, protected=(), ours
     if p.is_dir():
         raise InputError(f"{option} {p} is a directory; give a file name such as {p / 'preset.toml'}")
     _check_ancestors(p, option)
+    check_creatable(p, option)
     if p.exists() and not force and not (ours is not None and ours(p)):
         raise InputError(f"{option} {p} already exists and was not written by shadowlab; choose another file "
                          "name, or pass --force to replace it")
