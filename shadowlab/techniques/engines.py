@@ -34,16 +34,15 @@ import tempfile
 import time
 from pathlib import Path
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..errors import EnvironmentProblem, InputError
+from ..errors import EnvironmentProblem
 from ..io import browser as browser_mod
 from ..scene import gltf
 from ..render.gbuffer import vec_numpy
 from ..scene import lights as lights_mod
-from .base import ShadowResult, Technique, needs_mitsuba_geometry
+from .base import LightResult, Technique, needs_mitsuba_geometry
 
 #: the adapter pages and their scripts (package data)
 PAGES = Path(__file__).with_name("engine_pages")
@@ -194,10 +193,11 @@ def camera_config(frame) -> dict:
 
 class EngineTechnique(Technique):
     """A technique whose shadows a real engine renders. Subclasses set ``engine`` (the npm package
-    whose version the stats record), ``page`` (the adapter page), ``shadow_type`` (the page's name of
-    the engine's shadow type) and ``params`` (the engine's own parameter names), and may refuse
-    scenes in :meth:`unsupported`; :meth:`engine_values` turns the resolved values into what the
-    page sets (default: as they are)."""
+    whose version the stats record), ``page_html`` (the adapter page), ``shadow_type`` (the page's
+    name of the engine's shadow type) and ``params`` (the engine's own parameter names), and may
+    refuse scenes in :meth:`unsupported`; :meth:`engine_values` turns the resolved values into what
+    the page sets (default: as they are). The base class's render loop runs it: :meth:`prepare`
+    renders every light in the engine, :meth:`render_light` hands each light its image."""
 
     engine: str = ""
     page_html: str = ""
@@ -246,38 +246,37 @@ class EngineTechnique(Technique):
         cfg = {"type": self.shadow_type, "width": W, "height": H, "camera": camera_config(frame), "lights": lights}
         return sess.page(key, self.page_html, cfg, glb)
 
-    def render(self, frame, params: dict | None = None) -> ShadowResult:
-        values = self.resolve(params)
-        why = self.unsupported(frame.scene.spec)
-        if why:
-            raise InputError(why)
-        version = package_version(self.engine)     # missing npm packages: exit 3 naming `make engines`
-        sess = session()
-        info = self._load(frame, sess)
+    # -- the base's render loop: the engine renders every light once (prepare), each light takes its own
+    def prepare(self, frame, values: dict, ctx) -> None:
+        """Load the page (once per scene) and render every light at these values."""
+        ctx.version = package_version(self.engine)     # missing npm packages: exit 3 naming `make engines`
+        ctx.session = session()
+        ctx.info = self._load(frame, ctx.session)
         t0 = time.perf_counter()
-        out = sess.render({**self.engine_values(values), "__type": self.shadow_type})
-        wall = time.perf_counter() - t0
+        out = ctx.session.render({**self.engine_values(values), "__type": self.shadow_type})
+        ctx.wall, ctx.page_ms = time.perf_counter() - t0, float(out["ms"])
+        ctx.lights = {r["name"]: (r, maps) for r, maps in zip(out["lights"], out["maps"])}
+
+    def render_light(self, frame, light, values: dict, ctx) -> LightResult:
+        """The light's visibility as the engine returned it; with the engine's unshadowed light (sent
+        once per page), its shaded direct light (AOV ``engine_direct``, the channel mean of albedo ×
+        light × visibility) and ``direct_ratio``."""
         gb = frame.gbuffer
         W, H = gb.width * gb.ss, gb.height * gb.ss
-        vis, lights, aovs = {}, {}, {}
-        albedo = gb.albedo.reshape(-1, 3)
-        for l, r, maps in zip(frame.lights, out["lights"], out["maps"]):
-            flat = to_points(decode(r["vis"], W, H), gb.ss)
-            v = mi.Float(flat.astype(np.float32))
-            vis[l.name] = dr.select(gb.valid, v, 1.0)
-            lights[l.name] = {"maps": maps, "above_one": int(r["above_one"])}
-            if "lit" in r:
-                sess.lit[(sess.key, l.name)] = np.stack([to_points(c, gb.ss) for c in
+        r, maps = ctx.lights[light.name]
+        flat = to_points(decode(r["vis"], W, H), gb.ss)
+        stats, aovs = {"above_one": int(r["above_one"])}, {}
+        sess = ctx.session
+        if "lit" in r:
+            sess.lit[(sess.key, light.name)] = np.stack([to_points(c, gb.ss) for c in
                                                          decode_rgb(r["lit"], W, H).transpose(2, 0, 1)], 1)
-            lit = sess.lit.get((sess.key, l.name))
-            if lit is not None:
-                direct = albedo * lit                   # the engine's unshadowed Lambertian direct light
-                aovs[f"{l.name}.engine_direct"] = gb.to_image(direct * flat[:, None])
-                lights[l.name]["direct_ratio"] = direct_ratio(direct, vec_numpy(frame.unshadowed[l.name]))
-        dr.eval(*vis.values())
-        stats = {"engine": {"package": self.engine, "version": version, "shadow_type": self.shadow_type,
-                            "renderer": info.get("renderer", ""), "page_ms": float(out["ms"]),
-                            "render_s": wall},
-                 "lights": lights}
-        return ShadowResult(visibility=vis, aovs=aovs, stats=stats, technique=self)
+        lit = sess.lit.get((sess.key, light.name))
+        if lit is not None:
+            direct = gb.albedo.reshape(-1, 3) * lit      # the engine's unshadowed Lambertian direct light
+            aovs["engine_direct"] = mi.Float((direct * flat[:, None]).mean(1).astype(np.float32))
+            stats["direct_ratio"] = direct_ratio(direct, vec_numpy(frame.unshadowed[light.name]))
+        return LightResult(mi.Float(flat.astype(np.float32)), aovs=aovs, active=gb.valid, stats=stats, maps=maps)
 
+    def summarise(self, frame, values: dict, ctx, lights: dict) -> dict:
+        return {"engine": {"package": self.engine, "version": ctx.version, "shadow_type": self.shadow_type,
+                           "renderer": ctx.info.get("renderer", ""), "page_ms": ctx.page_ms, "render_s": ctx.wall}}
