@@ -134,3 +134,27 @@ def test_a_reader_during_a_swap_waits_for_the_new_reference(tmp_path, base, caps
     finally:
         p.wait(timeout=60)
     assert p.returncode == 0, p.stderr.read()
+
+
+def test_a_reader_whose_files_move_away_mid_read_reads_the_new_reference(tmp_path, base, capsys, monkeypatch):
+    """The writer's first rename (old reference away) lands just after the reader checked that the
+    reference is there; the new one is placed 0.5 s later: the reader retries and reads it."""
+    import shutil
+    import threading
+    scene = _scene(tmp_path)
+    assert _run(["reference", scene, *FAST], capsys)[0] == 0
+    d = store.path_for("tiny", (16, 16), base)
+    new = tmp_path / "new"
+    shutil.copytree(d, new)
+    problem = store._problem
+
+    def writer_moves_old_away(path):
+        out = problem(path)
+        if Path(path) == d and d.exists():
+            d.rename(d.parent / f".{d.name}.old-99999")
+            threading.Timer(0.5, lambda: (new.rename(d), shutil.rmtree(d.parent / f".{d.name}.old-99999"))).start()
+        return out
+
+    monkeypatch.setattr(store, "_problem", writer_moves_old_away)
+    truth, meta = store.load(load_spec(scene), base=base)
+    assert d.exists() and meta[store.CHECKSUM_KEY] == store.sha256_file(d / "truth.exr")

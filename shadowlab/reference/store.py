@@ -270,6 +270,17 @@ def _await_swap(dest: Path, wait_s: float = SWAP_WAIT_S) -> None:
         time.sleep(0.02)
 
 
+def _read_settled(d: Path, cmd: str):
+    """:func:`_read`, once more after a swap in progress settles: a reader whose files were moved
+    away mid-read (between the fallback's two renames) reads the new reference instead of failing;
+    a damaged reference fails the second read as it did the first."""
+    try:
+        return _read(d, cmd)
+    except ShadowlabError:
+        _await_swap(d)
+        return _read(d, cmd)
+
+
 def recover(dest: Path, wait_s: float = 5.0) -> str | None:
     """Clean up after an interrupted save of ``dest`` (see the module docstring); a no-op, with
     no lock taken, when nothing is left over. Readers call it: if a writer holds the lock while
@@ -551,7 +562,7 @@ def load(scene_spec, resolution=None, base: Path | None = None, check_hash: bool
     problem = _problem(d)
     if problem:
         raise ReferenceError_(f"the reference at {d} is incomplete ({problem}); re-render it with `{cmd} --force`")
-    meta, ch = _read(d, cmd)
+    meta, ch = _read_settled(d, cmd)
     if check_hash and meta.get("scene_hash") != scene_spec.digest():
         raise ReferenceError_(f"the reference at {d} was rendered from a different version of scene "
                               f"{scene_spec.name!r} (scene hash {str(meta.get('scene_hash'))[:12]}… ≠ "
