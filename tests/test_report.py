@@ -233,7 +233,8 @@ def test_scatter_labels_of_clustered_points_do_not_overlap():
     labels = re.findall(r'<text x="([-\d.]+)" y="([-\d.]+)">([a-z_]+)</text>', svg)
     assert sorted(n for _, _, n in labels) == sorted(names)
     boxes = {n: (float(x) - 1, float(y) + 3 - _LABEL_H, _CHAR_W * len(n) + 2, _LABEL_H) for x, y, n in labels}
-    dots = [(float(cx) - 5, float(cy) - 5, 10, 10) for cx, cy in re.findall(r'<circle cx="([\d.]+)" cy="([\d.]+)"', svg)]
+    centres = re.findall(r'<circle cx="([\d.]+)" cy="([\d.]+)"', svg)
+    dots = [(float(cx) - 5, float(cy) - 5, 10, 10) for cx, cy in centres]
 
     def hit(a, b):
         return a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]

@@ -23,7 +23,7 @@ from shadowlab.fit import preset as preset_mod
 from shadowlab.gate.gatefile import load_gate_file, parse_gate_file
 from shadowlab.reference import store
 from shadowlab.reference.truth import SEED_MAX
-from shadowlab.scene._reader import did_you_mean
+from shadowlab.scene.reader import did_you_mean
 from shadowlab.scene.spec import SHADOW_MAP_MAX, builtin_names, load_spec, parse, resolve
 from shadowlab.techniques import base
 
@@ -84,7 +84,8 @@ def test_unknown_keys_anywhere_in_a_scene_get_a_suggestion(edit, parts):
     (lambda d: d["lights"].__setitem__(0, {"name": "b", "kind": "sphere", "position": [0, 4, 0], "radius": 0.3,
                                            "size": [1, 1], "power": 50}),
      ["lights[0].size: a sphere light has no 'size' (it is a key of rect lights)", "a sphere light's size is 'radius'",
-      "a sphere light takes: casts_shadows, color, depth_bits, kind, name, near, position, power, radiance, radius, shadow_map"]),
+      "a sphere light takes: casts_shadows, color, depth_bits, kind, name, near, position, power, radiance, radius, "
+      "shadow_map"]),
     (lambda d: d["lights"][0].update(radius=0.5), ["a rect light has no 'radius'", "a rect light's size is 'size'"]),
     (lambda d: d["lights"][0].update(direction=[0, -1, 0]), ["a rect light has no 'direction'",
                                                              "directional lights"]),

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..io.outdir import check_out_file
-from ..scene._reader import check_param_values, did_you_mean
+from ..scene.reader import check_param_values, did_you_mean
 from ..techniques import base
 
 RESERVED = ("name", "description", "meta")

@@ -20,7 +20,7 @@ except ModuleNotFoundError:  # pragma: no cover - python < 3.11
 from ..errors import InputError, SceneError
 from ..pipeline import frame_list
 from ..reference.truth import SEED_MAX
-from ..scene._reader import check_param_values, did_you_mean
+from ..scene.reader import check_param_values, did_you_mean
 from ..scene.spec import load_spec, resolve
 from ..techniques import base as tbase
 from .check import TARGETS

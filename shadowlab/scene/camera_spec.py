@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ._reader import _Reader, cross, norm
+from .reader import Reader, cross, norm
 
 #: default camera clip planes (m): the ground truth's Mitsuba sensor has always used these, so a
 #: scene without ``camera.near`` / ``camera.far`` renders, exports and hashes as before they existed
@@ -110,10 +110,10 @@ PATH_KEY_KEYS = ("frame", "position", "target", "fov", "up")
 PATH_CAMERA_KEYS = ("position", "target", "fov", "up")
 
 
-def read_camera(path: str, data: dict, top: _Reader) -> Camera:
+def read_camera(path: str, data: dict, top: Reader) -> Camera:
     if "camera" not in data or not isinstance(data["camera"], dict):
         top.fail("camera", "a [camera] table with position, target, fov, resolution")
-    c = _Reader(path, "camera", data["camera"])
+    c = Reader(path, "camera", data["camera"])
     c.check_keys(CAMERA_KEYS, "[camera]")
     res = c.t.get("resolution", [128, 128])
     if (not isinstance(res, list) or len(res) != 2 or
@@ -136,7 +136,7 @@ def read_camera(path: str, data: dict, top: _Reader) -> Camera:
     return camera
 
 
-def _check_view(c: _Reader, position, target, up, where: str):
+def _check_view(c: Reader, position, target, up, where: str):
     """A camera (static, a key or a frame of a path) must look somewhere and have a usable up."""
     view = [a - b for a, b in zip(target, position)]
     if norm(view) == 0:
@@ -156,11 +156,11 @@ def read_camera_path(path: str, cam_table: dict, camera: Camera) -> CameraPath |
     if "path" not in cam_table:
         return None
     raw = cam_table["path"]
-    top = _Reader(path, "camera", cam_table)
+    top = Reader(path, "camera", cam_table)
     if not isinstance(raw, dict):
         top.fail("path", "a [camera.path] table (frames, interpolation, [[camera.path.keys]] or "
                  "[[camera.path.cameras]])", raw)
-    r = _Reader(path, "camera.path", raw)
+    r = Reader(path, "camera.path", raw)
     r.check_keys(PATH_KEYS, "[camera.path]")
     if ("keys" in raw) == ("cameras" in raw):
         r.fail("keys", "either [[camera.path.keys]] (keyframes: frame, position, target, fov, up) or "
@@ -185,7 +185,7 @@ def read_camera_path(path: str, cam_table: dict, camera: Camera) -> CameraPath |
     interp = r.str("interpolation", default="linear", choices=INTERPOLATIONS)
     keys = []
     for n, it in enumerate(items):
-        k = _Reader(path, f"camera.path.{label}[{n}]", it)
+        k = Reader(path, f"camera.path.{label}[{n}]", it)
         k.check_keys(PATH_CAMERA_KEYS if explicit else PATH_KEY_KEYS, f"[[camera.path.{label}]]")
         if explicit:
             fr = n
@@ -208,5 +208,5 @@ def read_camera_path(path: str, cam_table: dict, camera: Camera) -> CameraPath |
     if not explicit:
         for i in range(frames):  # interpolated frames (a spline can overshoot): the same checks per frame
             k = cp.key_at(i)
-            _check_view(_Reader(path, f"camera.path (frame {i})", {}), k.position, k.target, k.up, "its position")
+            _check_view(Reader(path, f"camera.path (frame {i})", {}), k.position, k.target, k.up, "its position")
     return cp

@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ..errors import SceneError
-from ._reader import _Reader, norm, rotations
+from .reader import Reader, norm, rotations
 from .textures import AlphaTextureError, read_alpha
 
 LIGHT_KINDS = ("rect", "disk", "sphere", "spot", "point", "directional")
@@ -144,7 +144,7 @@ class ShapeSpec:
         return tuple(1.0 - self.opacity * (1.0 - t) for t in self.transmittance)
 
 
-def _kind_keys(r: _Reader, kind: str, table: dict, keys: dict, label: str):
+def _kind_keys(r: Reader, kind: str, table: dict, keys: dict, label: str):
     """Refuse a key the light kind / shape type does not take, naming the kinds that take it."""
     allowed = keys[kind]
     for k in table:
@@ -163,7 +163,7 @@ def _kind_keys(r: _Reader, kind: str, table: dict, keys: dict, label: str):
 def read_light(path: str, i: int, lt, names: set) -> LightSpec:
     if not isinstance(lt, dict):
         raise SceneError(f"{path}: lights[{i}]: expected a table, got {lt!r}")
-    r = _Reader(path, f"lights[{i}]", lt)
+    r = Reader(path, f"lights[{i}]", lt)
     kind = r.str("kind", choices=LIGHT_KINDS)
     _kind_keys(r, kind, lt, LIGHT_KEYS, "light")
     lname = r.str("name", default=f"L{i}")
@@ -232,7 +232,7 @@ def read_light(path: str, i: int, lt, names: set) -> LightSpec:
 def read_shape(path: str, i: int, st, names: set, snames: set, base: Path) -> ShapeSpec:
     if not isinstance(st, dict):
         raise SceneError(f"{path}: shapes[{i}]: expected a table, got {st!r}")
-    r = _Reader(path, f"shapes[{i}]", st)
+    r = Reader(path, f"shapes[{i}]", st)
     typ = r.str("type", choices=SHAPE_TYPES)
     _kind_keys(r, typ, st, SHAPE_KEYS, "shape")
     sname = r.str("name", default=f"{typ}{i}")
@@ -293,7 +293,7 @@ def read_shape(path: str, i: int, st, names: set, snames: set, base: Path) -> Sh
                st["opacity"])
     return ShapeSpec(**kw)
 
-def _alpha_texture(r: _Reader, base: Path) -> str:
+def _alpha_texture(r: Reader, base: Path) -> str:
     """Validate ``alpha_texture`` (a readable image with an alpha channel, or greyscale; see
     :mod:`shadowlab.scene.textures`) and return its resolved path."""
     fn = r.str("alpha_texture")

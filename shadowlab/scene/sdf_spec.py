@@ -39,7 +39,7 @@ import numpy as np
 
 from ..errors import SceneError
 from ..sdf import field as F
-from ._reader import _Reader, rotations
+from .reader import Reader, rotations
 
 PRIMITIVES = ("sphere", "box", "cylinder", "capsule", "segment", "plane", "mandelbulb")
 OPERATIONS = ("union", "intersection", "difference")
@@ -65,7 +65,7 @@ _KEYS = {
 def _object(path: str, where: str, st, top: bool, depth: int = 0) -> dict:
     if not isinstance(st, dict):
         raise SceneError(f"{path}: {where}: expected a table, got {st!r}")
-    r = _Reader(path, where, st)
+    r = Reader(path, where, st)
     typ = r.str("type", choices=TYPES)
     allowed = _COMMON | _KEYS[typ] | ({"name", "albedo"} if top else set())
     for k in st:

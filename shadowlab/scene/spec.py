@@ -47,7 +47,7 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 from ..errors import SceneError
-from ._reader import _Reader
+from .reader import Reader
 from .camera_spec import (CAMERA_FAR, CAMERA_KEYS, CAMERA_NEAR, FRAMES_MAX, INTERPOLATIONS, PATH_CAMERA_KEYS,
                           PATH_KEY_KEYS, PATH_KEYS, Camera, CameraKey, CameraPath, read_camera, read_camera_path)
 from .elements import (DEPTH_BITS, LIGHT_KEYS, LIGHT_KINDS, SHADOW_MAP_MAX, SHAPE_KEYS, SHAPE_TYPES, LightSpec,
@@ -176,7 +176,7 @@ TOP_KEYS = ("name", "description", "camera", "lights", "shapes", "sdf", "truth_a
 TRUTH_ALLOCATIONS = ("per_light", "contribution")
 
 
-def _scene_name(top: _Reader, data: dict, path: str) -> str:
+def _scene_name(top: Reader, data: dict, path: str) -> str:
     """The scene's name: it names the scene's directory in the reference store, so it must be one
     plain path component (no '/', no '..', not empty, not hidden)."""
     explicit = "name" in data
@@ -206,7 +206,7 @@ def _not_a_scene(path: str, data: dict):
 def parse(data: dict, path: str = "<scene>") -> SceneSpec:
     """Validate a parsed TOML document and return a SceneSpec (raises SceneError)."""
     _not_a_scene(path, data)
-    top = _Reader(path, "", data)
+    top = Reader(path, "", data)
     top.check_keys(TOP_KEYS, "a scene file (top level)")
     name = _scene_name(top, data, path)
     camera = read_camera(path, data, top)

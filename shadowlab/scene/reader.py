@@ -45,7 +45,7 @@ def unknown_key_text(key, allowed, what: str) -> str:
             "Fix the spelling or remove the key")
 
 
-class _Reader:
+class Reader:
     """Typed access to a TOML table, with errors naming file, key and expectation."""
 
     def __init__(self, path: str, where: str, table: dict):
@@ -162,7 +162,7 @@ def check_param_values(where: str, t, params: Mapping) -> None:
             raise InputError(f"{where}: {t.name}.{k}: expected a number (without quotes), got {v!r}")
 
 
-def rotations(r: _Reader, table: dict) -> list:
+def rotations(r: Reader, table: dict) -> list:
     """The ``rotate`` key of a shape: [ax, ay, az, degrees] or a list of them, axes non-zero."""
     rot = table.get("rotate", [])
     if rot and isinstance(rot[0], (int, float)):
