@@ -224,3 +224,17 @@ def test_a_scene_named_like_a_store_file_is_exit_2_naming_the_clash(tmp_path, ca
     line = _one_line(capsys.readouterr().err)
     assert rc == 2 and "clashes with the file" in line and str(base / "gates.toml") in line, line
     assert "chmod" not in line and (base / "gates.toml").read_text() == "version = 1\n"
+
+
+@needs_mount
+def test_a_report_on_a_full_disk_exits_3(tmp_path):
+    scene = _scene(tmp_path)
+    base = tmp_path / "refs"
+    pipeline.reference(str(scene), base=base, progress=False, max_rounds=2, spp=0)
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    r = _in_namespace({disk: "16k"}, ["compare", scene, "-t", "hard", "--out", disk / "report"],
+                      _env(SHADOWLAB_REFERENCES=base))
+    assert r.returncode == 3, (r.stdout, r.stderr)
+    line = _one_line(r.stderr)
+    assert "No space left on device" in line and "free disk space" in line, line
