@@ -148,3 +148,10 @@ def test_a_scheduler_without_workers_exits_3_instead_of_waiting_forever(monkeypa
         with pytest.raises(ex_mod.EnvironmentProblem, match="has no workers .*`dask worker "):
             with ex_mod.open_executor(scheduler=cluster.scheduler_address):
                 pass
+
+
+def test_tls_without_dask_tls_settings_names_them(silent):
+    address = silent.address.replace("tcp://", "tls://")
+    with pytest.raises(ex_mod.EnvironmentProblem, match="give Dask's TLS settings"):
+        with ex_mod.open_executor(scheduler=address):
+            pass

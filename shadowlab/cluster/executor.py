@@ -285,6 +285,10 @@ def _connect(address: str) -> DaskExecutor:
         raise
     except (OSError, TimeoutError) as e:
         raise _unreachable(address, f"{type(e).__name__}: {e}") from None
+    except TypeError as e:  # tls:// without Dask's TLS settings: "TLS expects a `ssl_context` ..."
+        raise EnvironmentProblem(f"cannot connect to the Dask scheduler at {address}: {e}; give Dask's TLS settings "
+                                 "(distributed.comm.tls.ca-file, .client.cert, .client.key in Dask's configuration) "
+                                 "or use the scheduler's tcp:// address") from None
     except Exception as e:  # noqa: BLE001 - e.g. MemoryError: another protocol's bytes read as a frame size
         raise _unreachable(address, f"it does not answer as a Dask scheduler ({type(e).__name__})") from None
     try:
