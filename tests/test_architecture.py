@@ -53,11 +53,13 @@ NEUTRAL = ("pipeline", "report", "fit")
 #: strings of that file (and nowhere as code)
 PROSE = {("shadowlab/report/lights.py", "hard"): "a spot light's hard cone, hard (delta-light) shadows in the truth"}
 
-#: where private names may not cross modules
-PRIVATE_SCOPE = ("techniques", "report", "fit", "pipeline", "exchange")
+#: where private names may not cross modules: every package and module of shadowlab
+PRIVATE_SCOPE = tuple(sorted(p.name for p in PKG.iterdir()
+                             if (p.is_dir() and (p / "__init__.py").exists()) or (p.suffix == ".py")))
 
-#: namedtuple's public methods, which start with "_" so as not to clash with field names
-NAMEDTUPLE_API = frozenset({"_asdict", "_replace", "_fields", "_make", "_field_defaults"})
+#: public names of other APIs that start with "_": namedtuple's methods (so as not to clash with
+#: field names) and the standard library's ``os._exit`` (leave at once, after a signal)
+NAMEDTUPLE_API = frozenset({"_asdict", "_replace", "_fields", "_make", "_field_defaults", "_exit"})
 
 
 # --- 1. imports --------------------------------------------------------------------------------

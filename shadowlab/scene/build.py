@@ -316,7 +316,7 @@ def sensor_dict(cam, spp: int = 1, seed: int = 0) -> dict:
         "to_world": mi.ScalarTransform4f().look_at(
             origin=list(cam.position),
             target=list(cam.target),
-            up=list(lights_mod.up_for(lights_mod._unit([t - p for t, p in zip(cam.target, cam.position)]), cam.up)),
+            up=list(lights_mod.up_for(lights_mod.unit([t - p for t, p in zip(cam.target, cam.position)]), cam.up)),
         ),
         "film": {"type": "hdrfilm", "width": W, "height": H, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
         "sampler": {"type": "independent", "sample_count": spp, "seed": seed},

@@ -28,7 +28,8 @@ from .spec import LightSpec
 SUN_DISTANCE = 1000.0  # in scene bounding radii
 
 
-def _unit(v):
+def unit(v):
+    """``v`` scaled to length 1 (a tuple)."""
     n = math.sqrt(sum(x * x for x in v))
     return tuple(x / n for x in v)
 
@@ -36,15 +37,15 @@ def _unit(v):
 def forward(light: LightSpec) -> tuple:
     """Unit vector the light faces (emits toward)."""
     if light.kind == "directional":
-        return _unit(light.direction)
+        return unit(light.direction)
     if light.kind in ("rect", "disk", "spot"):
-        return _unit([t - p for t, p in zip(light.target, light.position)])
+        return unit([t - p for t, p in zip(light.target, light.position)])
     return (0.0, -1.0, 0.0)
 
 
 def up_for(fwd, up):
     """An up vector not parallel to ``fwd``."""
-    c = abs(sum(a * b for a, b in zip(fwd, _unit(up))))
+    c = abs(sum(a * b for a, b in zip(fwd, unit(up))))
     if c > 0.999:
         return (1.0, 0.0, 0.0) if abs(fwd[0]) < 0.9 else (0.0, 0.0, 1.0)
     return up
