@@ -138,3 +138,16 @@ def test_findings_in_closed_form():
     with pytest.raises(Exception, match="measures nothing"):
         vacuous.refuse_empty({"a": "enclosed", "b": "unreached"}, ["a", "b"], where="r", fix_tail="x")
     vacuous.refuse_empty({"b": "unreached"}, ["a", "b"], where="r", fix_tail="x")    # a still measures
+
+
+def test_references_lists_a_truth_of_another_size_as_damaged(tmp_path, base, capsys):
+    scene = _write(tmp_path, "resized", _KEY, _FLOOR)
+    assert _run(["reference", scene, *FAST], capsys)[0] == 0
+    (meta_path,) = base.rglob("meta.json")
+    exr = meta_path.with_name("truth.exr")
+    write_exr(exr, {k: v[:8] for k, v in read_exr(exr).items()})          # 16x8 in a 16x16 directory
+    meta = json.loads(meta_path.read_text())
+    meta[store.CHECKSUM_KEY] = store.sha256_file(exr)
+    meta_path.write_text(json.dumps(meta))
+    rc, out, _ = _run(["references"], capsys)
+    assert rc == 0 and "damaged: truth.exr is 16x8, not 16x16" in out, out

@@ -632,6 +632,11 @@ def _content_problems(d: Path, meta: dict, cmd: str) -> list[str]:
         ch = read_exr(d / "truth.exr")
     except ShadowlabError:
         return [f"damaged: truth.exr does not read; re-render with `{cmd} --force`"]
+    (W, H), _ = parse_dir_name(d.name)
+    shapes = {a.shape for a in ch.values()}
+    if shapes != {(H, W)}:
+        return [f"damaged: truth.exr is {'/'.join(f'{s[1]}x{s[0]}' for s in sorted(shapes))}, not {W}x{H}; "
+                f"re-render with `{cmd} --force`"]
     lights = meta.get("lights") if isinstance(meta.get("lights"), list) else sorted(
         {k[2:] for k in ch if k.startswith("V.") and not k.endswith(".se")})
     missing = [c for c in required_channels(lights) if c not in ch]
