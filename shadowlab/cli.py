@@ -573,7 +573,7 @@ def gate(gatefile: str = typer.Argument(..., help="Gate file (TOML), e.g. refere
                                              "path (instead of the gate file's frame/frames)."),
          frames: Optional[str] = typer.Option(None, "--frames", help="Run every gate at frames A:B (both ends "
                                               "included), one gate per frame, named NAME@frameN."),
-         variant: Optional[str] = VariantOpt):
+         variant: Optional[str] = VariantOpt, references: Optional[str] = ReferencesOpt):
     """Gate candidates against stored references; exit 0 pass, 1 a gate failed, 2 bad input."""
     from .gate import run_gate_file
     code, results = run_gate_file(gatefile, out_dir=Path(out), only=_split(only) if only else None, variant=variant,

@@ -134,3 +134,13 @@ def test_cli_writes_into_the_project_store_and_reads_it_back(project, tmp_path):
              "--references", str(other), cwd=cwd)
     assert r.returncode == 0, r.stderr
     assert not list(location.PACKAGE.rglob("truth.exr")) and not (location.PACKAGE / ".locks").exists()
+
+
+def test_gate_references_option_overrides_the_gate_files_store(project, tmp_path):
+    from shadowlab.gate import load_gate_file
+    gf = project / "gates.toml"
+    gf.write_text('version = 1\nreferences = "baselines"\n\n[[gate]]\nname = "g"\nscene = "contact"\n'
+                  'candidate = { technique = "hard" }\nbudget = { rmse = 0.5 }\n')
+    assert load_gate_file(gf).references == project / "baselines"
+    location.choose(tmp_path / "elsewhere")
+    assert load_gate_file(gf).references == tmp_path / "elsewhere"

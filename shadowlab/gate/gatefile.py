@@ -19,6 +19,7 @@ except ModuleNotFoundError:  # pragma: no cover - python < 3.11
 
 from ..errors import InputError, SceneError
 from ..pipeline import frame_list
+from ..reference.location import chosen as chosen_store
 from ..reference.truth import SEED_MAX
 from ..scene.reader import check_param_values, did_you_mean
 from ..scene.spec import load_spec, resolve
@@ -240,6 +241,7 @@ def parse_gate_file(data: Mapping, path: Path) -> GateFile:
     if not isinstance(refs, str):
         raise InputError(f"{where}: references must be a path (relative to the gate file), got {refs!r}")
     refs = Path(refs) if Path(refs).is_absolute() else (base / refs)
+    refs = chosen_store() or refs                      # `shadowlab gate --references DIR` overrides the file
     defaults = data.get("defaults", {})
     if not isinstance(defaults, Mapping):
         raise InputError(f"{where}: [defaults] must be a table")
