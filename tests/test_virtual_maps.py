@@ -266,7 +266,7 @@ def test_rendered_memory_and_texels_follow_the_leaves(outdoor):
     values = t.resolve({**SMALL, "overlap": 1})
     b = t.base(outdoor, outdoor.lights[0], values)
     lv = t.demand(outdoor, b, values)["leaves"]
-    r = t.render(outdoor, {**SMALL, "overlap": 1, "tile_mode": "exact"})
+    r = t.render(outdoor, {**SMALL, "overlap": 1, "tile_mode": "exact", "uncovered": "lit"})
     st = r.stats["lights"]["sun"]
     assert st["tiles"] == len(lv) and st["texels"] == int(np.sum((lv.w + 2) * (lv.h + 2)))
     assert st["memory_modes"] == {k: 4 * v for k, v in memory_texels(lv.w, lv.h, 256, 1).items()}
@@ -386,10 +386,11 @@ def test_where_the_demand_exceeds_the_grid_fvsm_renders_vtsm_s_tile_and_agrees_b
 
 def test_rect_application_leaves_only_pixels_the_smtmm_did_not_sample(outdoor):
     """Screen rectangles (§4.5) come from the SMTMM's samples: with one sample per pixel nothing
-    is missed; with every 4th the pixels no sample stood for may be (counted, and lit)."""
-    full = base.get("fvsm").render(outdoor, {**SMALL, "smtmm_scale": 1})
+    is missed; with every 4th the pixels no sample stood for may be (counted, and lit, with
+    ``uncovered`` = ``lit``, the source's clear value)."""
+    full = base.get("fvsm").render(outdoor, {**SMALL, "smtmm_scale": 1, "uncovered": "lit"})
     assert full.stats["lights"]["sun"]["unshadowed_fraction"] == 0.0
-    sub = base.get("fvsm").render(outdoor, {**SMALL, "smtmm_scale": 4})
+    sub = base.get("fvsm").render(outdoor, {**SMALL, "smtmm_scale": 4, "uncovered": "lit"})
     tile = sub.aovs["sun.tile"]
     valid = outdoor.gbuffer.to_image(outdoor.gbuffer.valid) > 0
     frac = float(((tile < 0) & valid).sum()) / valid.sum()

@@ -18,7 +18,7 @@ BARS = [{"name": f"bar{i}", "type": "cube", "translate": [0.0, 1.5, z], "scale":
         for i, z in enumerate((-2.0, 0.0, 2.0))]
 #: a coarse SMTMM over a fine grid: cells between the sampled pixels get no tile, so tile borders
 #: run through the shadows of the bars
-SEAMY = {"smtmm_scale": 8, "grid": 32, "t_max": 64, "apply": "full", "focus": "visible"}
+SEAMY = {"smtmm_scale": 8, "grid": 32, "t_max": 64, "apply": "full", "focus": "visible", "uncovered": "lit"}
 
 
 @pytest.fixture(scope="module")
@@ -174,3 +174,32 @@ def test_screen_rectangles_shade_a_fraction_of_the_full_screen_passes(bars):
     edge = near & valid & ~(holds & (bx[:, None] >= lv.rect[:, 0]) & (bx[:, None] <= lv.rect[:, 2])
                              & (by[:, None] >= lv.rect[:, 1]) & (by[:, None] <= lv.rect[:, 3])).any(1)
     assert edge.sum() > 10 and np.all(t_r[edge] >= 0)
+
+
+# ----------------------------------------------------------------------------- uncovered pixels
+
+@pytest.mark.parametrize("apply", ["rect", "full"])
+def test_the_fallback_leaves_no_pixel_without_a_tile(bars, centre, apply):
+    """``uncovered`` = ``fallback`` (the default): a pixel no tile writes reads the tile whose
+    texture holds it (the one a full-screen pass gives it), else one coarse tile of the whole map
+    (appended last, min(t_max, 128) texels across); with ``lit`` (the source's clear value) the
+    same pixels stay lit."""
+    vals = {**SEAMY, "apply": apply}
+    lit = base.get("fvsm").render(bars, vals)
+    fb = base.get("fvsm").render(bars, {**vals, "uncovered": "fallback"})
+    full = base.get("fvsm").render(bars, {**vals, "apply": "full"})
+    valid = bars.gbuffer.valid.numpy().astype(bool)
+    t_lit, t_fb, t_full = (np.asarray(r.aovs["sun.tile"]).reshape(-1) for r in (lit, fb, full))
+    gap = valid & (t_lit < 0)
+    assert gap.sum() > 20 and np.all(lit.visibility["sun"].numpy()[gap])
+    assert np.all(t_fb[valid] >= 0) and fb.stats["lights"]["sun"]["unshadowed_fraction"] == 0.0
+    by_texture = gap & (t_full >= 0)
+    assert np.array_equal(t_fb[by_texture], t_full[by_texture])
+    coarse = gap & (t_full < 0)
+    n = lit.stats["lights"]["sun"]["tiles"]
+    assert coarse.sum() > 5 and np.all(t_fb[coarse] == n) and fb.stats["lights"]["sun"]["tiles"] == n + 1
+    assert fb.stats["lights"]["sun"]["texels"] == lit.stats["lights"]["sun"]["texels"] + 64 * 64
+    assert fb.stats["lights"]["sun"]["memory_bytes"] == lit.stats["lights"]["sun"]["memory_bytes"] + 4 * 64 * 64
+    v = fb.visibility["sun"].numpy() >= 0.5
+    assert np.mean(v[coarse] == centre[coarse]) > 0.9 and (~centre[coarse]).sum() > 0
+    assert np.array_equal(fb.visibility["sun"].numpy()[valid & ~gap], lit.visibility["sun"].numpy()[valid & ~gap])

@@ -10,7 +10,9 @@ rendered as a texture of its own (:mod:`shadowlab.render.tiles`, one ray per tex
 deferred shadowing into a one-byte *shadow result texture* (§3.2): a tile writes the hard,
 biased depth test of ``hard`` ([Buljan 2020, §2.3], the same code) for every pixel whose point
 falls in its texture; a later tile overwrites an earlier one. A pixel no tile writes keeps the
-texture's clear value, lit (``unshadowed_fraction``).
+texture's clear value, lit (``unshadowed_fraction``), in the source; ``uncovered`` = ``fallback``
+(the default) gives it the tile whose texture holds it, else one coarse tile of the whole map
+(:meth:`VirtualMap.cover`), so no pixel is left without a tile.
 
 Eq. (1) of §3.2 (:meth:`shadowlab.render.camera.Camera.eye_unproject`) reconstructs a pixel's
 point from the eye-space depth buffer; it gives the G-buffer's points (to float precision, a
@@ -67,9 +69,10 @@ reused by later tiles as tiles are drawn one after another), 4 bytes a texel (on
   (2·4/3·t_max² in [Giegl 2007, §4.10]'s count, which assumes aspect ratios of at most 2).
 
 Stats per light: ``tiles``, ``texels`` (rays cast), ``memory_bytes`` (the chosen mode) and
-``memory_modes`` (all three), ``traversal_depth`` (the deepest pyramid level a tile sits on,
-max(p_x, p_y)), ``demand`` (the root's demand levels [L_x, L_y]: the virtual map 2^L a
-sub-pixel result needs), ``smtmm`` (its size), ``discarded_pixels`` and ``unshadowed_fraction``.
+``memory_modes`` (all three; with the coarse tile of ``uncovered`` its texture in each),
+``traversal_depth`` (the deepest pyramid level a tile sits on, max(p_x, p_y)), ``demand`` (the
+root's demand levels [L_x, L_y]: the virtual map 2^L a sub-pixel result needs), ``smtmm`` (its
+size), ``discarded_pixels`` and ``unshadowed_fraction``.
 AOVs: ``tile`` (the tile a pixel reads, −1 none), ``demand_x``, ``demand_y`` (L per pixel),
 ``provided_x``, ``provided_y`` (log2 of the virtual resolution its tile gives), ``cell`` (the
 SMTG cell, for the grid overlay); −1 where there is no surface or it lies outside the map. Every parameter steps the
@@ -106,6 +109,8 @@ GRIDS = (1, 2, 4, 8, 16, 32)
 T_MAX_LIMIT = 16384
 LEVEL_MAX = 255
 TILE_MODES = ("subrect", "pow2", "exact")
+#: texels across the coarse tile of ``uncovered`` = ``fallback`` (at most t_max)
+COARSE = 128
 FOCI = ("visible", "sphere", "box", "scene")
 _CSM = {p.name: p for p in CSM_PARAMS}
 
@@ -216,6 +221,9 @@ FVSM_PARAMS = (
               doc="texels each tile extends beyond its rectangle on every side (tiles overlap slightly)"),
         Param("apply", "rect", "choice", choices=("rect", "full"), source="[Giegl 2007, §4.5, §5]",
               doc="a tile shadows the screen rectangle of its pixels (rect) or the whole screen (full)"),
+        Param("uncovered", "fallback", "choice", choices=("fallback", "lit"), source="[Giegl 2007, §3.2]",
+              doc="a pixel no tile writes: read the tile whose texture holds it, else one coarse tile of the whole "
+                  "map (fallback), or keep the shadow result texture's clear value, lit (lit: the source)"),
     )
     + _focus_params("visible")
 )
@@ -685,6 +693,29 @@ class VirtualMap(Technique):
         # snapping steps by a texel of the finest virtual map the tiles can make
         return projection(light, frame.scene, res, fit)
 
+    @staticmethod
+    def cover(base, tiles, tile, gb, cells, values) -> tuple:
+        """``uncovered`` = ``fallback``: a point no tile writes (outside every screen rectangle
+        that would hold it, or in a cell no tile covers) reads the last tile whose texture holds
+        it, as if that tile's rectangle reached it; a point no tile's texture holds reads one
+        coarse tile of the whole map, min(t_max, :data:`COARSE`) texels across, appended last
+        and written only where nothing else is. Returns (tiles, tile per point)."""
+        f0 = base.faces[0]
+        if tiles.screen is not None:
+            anyt = assign_tiles(f0, tiles, gb.p, None, None, cells, int(values["grid"]))
+            tile = dr.select(tile < 0, anyt, tile)
+        x, y, _ = face_ndc(f0, gb.p)
+        left = gb.valid & (tile < 0) & (dr.abs(x) <= 1.0) & (dr.abs(y) <= 1.0)
+        if not dr.any(left):
+            return tiles, tile
+        c = min(int(values["t_max"]), COARSE)
+        scr = None if tiles.screen is None else np.vstack([tiles.screen, [[-np.inf, -np.inf, np.inf, np.inf]]])
+        more = Tiles(np.append(tiles.x0, -1.0), np.append(tiles.y0, -1.0), np.append(tiles.x1, 1.0),
+                     np.append(tiles.y1, 1.0), np.append(tiles.nx, c), np.append(tiles.ny, c), scr)
+        tile = dr.select(left, mi.Int32(len(tiles)), tile)
+        dr.eval(tile)
+        return more, tile
+
     def plan(self, frame, light, values, base) -> tuple:  # pragma: no cover - interface
         """(Tiles, cells table or None, stats, per-point AOVs): the tiles to render."""
         raise NotImplementedError
@@ -701,6 +732,13 @@ class VirtualMap(Technique):
         else:                                 # the points where this frame's camera sees them
             px, py, _ = frame.own_screen.project(gb.p)
         tile = assign_tiles(base.faces[0], tiles, gb.p, px, py, cells, int(values["grid"]))
+        if values.get("uncovered") == "fallback":
+            n_before = len(tiles)
+            tiles, tile = self.cover(base, tiles, tile, gb, cells, values)
+            if len(tiles) > n_before and "memory_modes" in stats:   # the coarse tile's texture, in every mode
+                extra = 4 * int(tiles.nx[-1] * tiles.ny[-1])
+                stats = {**stats, "memory_bytes": stats["memory_bytes"] + extra,
+                         "memory_modes": {k: v + extra for k, v in stats["memory_modes"].items()}}
         pts = SubFrame(frame.scene, Points(gb.p, gb.ng, gb.valid))
         v, active, texel = dr.full(mi.Float, 1.0, npts), dr.full(mi.Bool, False, npts), dr.zeros(mi.Float, npts)
         hits = 0
