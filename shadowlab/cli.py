@@ -332,11 +332,15 @@ def compare(scene: str = typer.Argument(..., help="Built-in scene name or path t
 def _applicable(scene: str) -> list[str]:
     """``-t all``: every technique that renders ``scene``; those that cannot are listed with the reason."""
     from .api import techniques_for
+    from .techniques import get
     why = techniques_for(scene)
+    external = [n for n in why if get(n).external]
     for n, reason in why.items():
-        if reason:
+        if reason and n not in external:
             typer.echo(f"skipping {n}: {reason}", err=True)
-    return [n for n, reason in why.items() if not reason]
+    if external:
+        typer.echo(f"not in all: {', '.join(external)} (real engines in a browser; name them with -t)", err=True)
+    return [n for n, reason in why.items() if not reason and n not in external]
 
 
 @app.command()

@@ -198,7 +198,7 @@ def bench_techniques(scene="contact", res=256, repeats=5):
     out = {}
     for n in base.names():
         t = base.get(n)
-        if t.unsupported(sc.spec):
+        if t.unsupported(sc.spec) or t.external:
             continue
         p = t.resolve({})
         for l in sc.spec.lights:  # light views are shared inputs, not the technique's cost
@@ -269,7 +269,7 @@ def bench_sweep(scene="contact", res=128, values=50):
     out = {}
     for n in base.names():
         t = base.get(n)
-        if t.unsupported(sc.spec):
+        if t.unsupported(sc.spec) or t.external:
             continue
         cont = [p for p in t.params if p.kind == "float" and p.lo is not None and p.hi is not None and p.hi > p.lo]
         if not cont:

@@ -500,7 +500,7 @@ def fit(scene, technique: str | None = None, *, params=None, method: str = "auto
         raise InputError("name the technique to fit with --technique NAME (or fit every technique with --all)")
     if all_techniques and params:
         raise InputError("--params applies to one --technique; --all fits each technique's default parameters")
-    techs = tbase.names() if all_techniques else [technique]
+    techs = [n for n in tbase.names() if not tbase.get(n).external] if all_techniques else [technique]
     for t in techs:
         tbase.get(t)                                         # unknown technique -> InputError
     pre = P.load(preset) if preset else None

@@ -303,6 +303,9 @@ class Technique:
     #: label AOVs (an integer per point, −1 = none) by whose labels ``compare`` breaks the visibility
     #: error down, beside the distance bands (``pipeline.error_bands``)
     band_aovs: tuple = ()
+    #: renders in an external program (a real engine in a browser): ``-t all``, ``fit --all``, ``demo``
+    #: and the bench's per-technique loops leave it out (it is run when named)
+    external: bool = False
 
     def param(self, name: str) -> Param:
         for p in self.params:

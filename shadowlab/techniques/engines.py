@@ -200,6 +200,7 @@ class EngineTechnique(Technique):
     renders every light in the engine, :meth:`render_light` hands each light its image."""
 
     engine: str = ""
+    external = True
     page_html: str = ""
     shadow_type: str = ""
     #: False: one loaded page serves every shadow type of the engine (the type is sent with each render)
