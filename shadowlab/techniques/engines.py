@@ -232,8 +232,11 @@ class EngineTechnique(Technique):
         gb = frame.gbuffer
         W, H = gb.width * gb.ss, gb.height * gb.ss
         spec = frame.scene.spec
+        camera = camera_config(frame)
+        # what the page holds: the engine, the scene's content and the camera (not the frame object: a
+        # fit's jobs may rebuild the frame, and the page need not be loaded again)
         key = (self.page_html, self.shadow_type if self.page_per_type else "", spec.name, spec.digest(), W, H,
-               id(frame))
+               json.dumps(camera))
         if key == sess.key:
             return sess.info
         with tempfile.TemporaryDirectory(prefix="shadowlab-glb-") as d:
@@ -244,7 +247,7 @@ class EngineTechnique(Technique):
             lights.append({"name": l.name, "node": entry["node"], "kind": l.kind, "type": entry["type"],
                            "direction": [float(x) for x in lights_mod.forward(l)],
                            "position": [float(x) for x in (l.position or (0.0, 0.0, 0.0))]})
-        cfg = {"type": self.shadow_type, "width": W, "height": H, "camera": camera_config(frame), "lights": lights}
+        cfg = {"type": self.shadow_type, "width": W, "height": H, "camera": camera, "lights": lights}
         return sess.page(key, self.page_html, cfg, glb)
 
     # -- the base's render loop: the engine renders every light once (prepare), each light takes its own
