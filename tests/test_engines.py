@@ -106,8 +106,8 @@ def test_one_babylon_page_serves_every_shadow_type(engine, contact):
         v = contact.image(get(name).render(contact, {"bias": 0.002}).visibility["key"])
         assert engine.session().key == key, name
         assert 0.0 <= v.min() and v.max() <= 1.0, name
-        # every type but PCSS shows an umbra here (Babylon's contact hardening on this spot light stays
-        # above 0.58 at its defaults: an open question, see docs/engines.md)
+        # every type but PCSS shows an umbra here (Babylon's contact hardening on a spot light stays
+        # above 0.58 at its defaults, under a sun it does not: docs/engines.md)
         assert v.min() < 0.5 or name == "babylon:pcss", (name, v.min())
     pcf = contact.image(get("babylon:pcf").render(contact, BABYLON_AGAINST_ACNE).visibility["key"])
     assert np.mean((pcf > 0.02) & (pcf < 0.98)) > 0.002
