@@ -156,8 +156,9 @@ class Casters:
 class Scene:
     """A loaded scene: spec, Mitsuba scene, camera sensor and light emitters.
 
-    ``center`` / ``radius`` bound the non-emitting geometry and the panels of the lights that cast
-    shadows (light cameras are fitted to it).
+    ``center`` / ``radius`` bound the non-emitting geometry (light cameras are fitted to it);
+    ``shape_boxes`` also holds the panels of the lights that cast shadows (the light cameras' depth
+    ranges reach them).
     ``shape_names[i]`` is the name of Mitsuba shape ``i``; ``emitters[name]`` the light's emitter.
     """
 
@@ -349,14 +350,12 @@ def build(spec: SceneSpec) -> Scene:
     elif not boxes:
         raise SceneError(f"{spec.source}: the scene has no bounded object (only [[sdf]] planes); add a shape or a "
                          "bounded [[sdf]] object")
-    for l in spec.lights:  # a light's panel that casts shadows is a caster: the light cameras must cover it too
-        if l.casts_shadows and l.has_panel:
-            pb = mi.load_dict(lights_mod.mitsuba_dict(l, (0.0, 0.0, 0.0), 1.0)[1]).bbox()
-            lo = tuple(min(a, float(c)) for a, c in zip(lo, pb.min))
-            hi = tuple(max(a, float(c)) for a, c in zip(hi, pb.max))
-            boxes.append((tuple(pb.min), tuple(pb.max)))
     center = tuple((a + b) / 2 for a, b in zip(lo, hi))
     radius = max(1e-3, 0.5 * math.sqrt(sum((b - a) ** 2 for a, b in zip(lo, hi))))
+    for l in spec.lights:  # a light's panel that casts shadows is a caster: the light cameras' depth ranges
+        if l.casts_shadows and l.has_panel:  # (from shape_boxes) must reach it; the scene's sphere stays
+            pb = mi.load_dict(lights_mod.mitsuba_dict(l, (0.0, 0.0, 0.0), 1.0)[1]).bbox()
+            boxes.append((tuple(pb.min), tuple(pb.max)))
     d = {"type": "scene", **geometry(), "sensor": sensor_dict(spec.camera)}
     for l in spec.lights:
         key, ld = lights_mod.mitsuba_dict(l, center, radius)
