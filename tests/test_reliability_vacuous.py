@@ -151,3 +151,16 @@ def test_references_lists_a_truth_of_another_size_as_damaged(tmp_path, base, cap
     meta_path.write_text(json.dumps(meta))
     rc, out, _ = _run(["references"], capsys)
     assert rc == 0 and "damaged: truth.exr is 16x8, not 16x16" in out, out
+
+
+def test_on_a_cluster_the_refusal_is_one_line_without_a_dask_dump(tmp_path, base, capfd):
+    """A job's refusal on a worker (here: the blind camera) ends the command with its one line and
+    exit code, as in one process; the worker does not print Dask's "Compute Failed" traceback
+    (capfd: the worker processes write to this process's stderr)."""
+    blind = _write(tmp_path, "blind", _KEY, _FLOOR, camera=_CAMERA.replace("[0.0, 0.4, 0.0]", "[0.0, 10.0, 12.0]"))
+    fine = _write(tmp_path, "fine", _KEY, _FLOOR)
+    rc = cli.main(["reference", str(blind), str(fine), "--workers", "2", *FAST])
+    out, err = capfd.readouterr()
+    lines = [l for l in err.splitlines() if l.strip() and not l.startswith("warning:")]
+    assert rc == 2 and len(lines) == 1 and "the camera sees no surface" in lines[0], err
+    assert "Compute Failed" not in err and "Traceback" not in err

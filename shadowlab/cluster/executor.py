@@ -35,7 +35,7 @@ from distributed.comm.addressing import parse_host_port
 from tqdm import tqdm
 
 from .. import backend
-from ..errors import EnvironmentProblem, InputError
+from ..errors import EnvironmentProblem, InputError, ShadowlabError
 
 __all__ = ["Executor", "Embedded", "DaskExecutor", "open_executor", "SCHEDULER_ENV", "PRELOAD", "SCHEMES",
            "run_id"]
@@ -63,10 +63,23 @@ def run_id() -> str:
     return uuid.uuid4().hex[:16]
 
 
+class Failed:
+    """A job's :class:`~shadowlab.errors.ShadowlabError` (bad input, the environment), carried back
+    as its result: the command ends with that one line and exit code, as in one process, and the
+    worker does not log the task as a failed computation with a traceback (Dask's "Compute Failed",
+    printed on the user's terminal). Any other exception is a bug and stays a failed task."""
+
+    def __init__(self, error: ShadowlabError):
+        self.error = error
+
+
 def _call(fn: Callable, item, variant: str, threads: int | None):
     """A job on a worker: select the variant (once per process) and the thread count, then run."""
-    backend.init(variant, threads=threads)
-    return fn(item)
+    try:
+        backend.init(variant, threads=threads)
+        return fn(item)
+    except ShadowlabError as e:
+        return Failed(e)
 
 
 class Executor:
@@ -118,6 +131,8 @@ class DaskExecutor(Executor):
                 for f in as_completed(futs):
                     if f.status == "error":
                         raise f.exception()
+                    if isinstance(f.result(), Failed):   # the first job with the user's error ends the command
+                        raise f.result().error
                     bar.update(1)
             return [f.result() for f in futs]
         finally:
