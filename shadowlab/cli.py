@@ -759,8 +759,8 @@ def main(argv=None) -> int:
     except Interrupted as e:  # arrived between the command's end and the exit
         return _interrupted(e.signum)
     finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+        for s, h in old.items():   # the start-up handler's line would be wrong now: the default instead
+            signal.signal(s, signal.SIG_DFL if h is _startup_signal else h)
 
 
 if __name__ == "__main__":
