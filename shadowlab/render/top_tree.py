@@ -101,6 +101,9 @@ class TopTree:
     degenerate: int
     rounds: int
     seconds: float
+    #: per node: a lower bound of the light distance (point light) or light-space depth (directional)
+    #: of every triangle in its subtree, the "deep" part of the query [Mora 2016] (None: not built)
+    near: np.ndarray | None = None
 
     @property
     def nodes(self) -> int:
@@ -119,6 +122,8 @@ class TopTree:
                         "d": mi.Float(pl[:, 3]), "cap": mi.Bool(self.cap),
                         "p": mi.Int32(self.child[:, 0]), "i": mi.Int32(self.child[:, 1]),
                         "n": mi.Int32(self.child[:, 2]), "level": mi.UInt32(self.level)}
+            if self.near is not None:
+                self._dr["near"] = mi.Float(np.ascontiguousarray(self.near, np.float32))
             dr.eval(*self._dr.values())
         return self._dr
 
@@ -196,6 +201,7 @@ def build_top_tree(V: np.ndarray, light, *, origin=None, order="random") -> TopT
     is_cap = np.zeros(cap_n, bool)
     child = np.full((cap_n, 3), _LEAF, np.int64)
     depth = np.zeros(cap_n, np.int64)
+    owner = np.zeros(cap_n, np.int64)
     used = 0
 
     def hang(tri, parent_depth):
@@ -206,6 +212,7 @@ def build_top_tree(V: np.ndarray, light, *, origin=None, order="random") -> TopT
         for j in range(4):
             P[base + j] = planes[tri, j]
             depth[base + j] = parent_depth + 1 + j
+            owner[base + j] = tri
         for j in range(3):
             child[base + j, 2] = base + j + 1
         is_cap[base + 3] = True
@@ -240,7 +247,9 @@ def build_top_tree(V: np.ndarray, light, *, origin=None, order="random") -> TopT
                 done[win] = True
             dropped += int(drop.sum())
             pend, node = pend[~done], node[~done]
+    near = subtree_near(triangle_near(Vo, lo)[owner[:used]], child[:used], depth[:used])
     return TopTree(
+        near=near,
         planes=P[:used].copy(),
         cap=is_cap[:used].copy(),
         child=child[:used].astype(np.int32),
@@ -254,6 +263,42 @@ def build_top_tree(V: np.ndarray, light, *, origin=None, order="random") -> TopT
         rounds=rounds,
         seconds=time.perf_counter() - t0,
     )
+
+
+def light_distance(x, light):
+    """The distance from the light (a point light, w = 1) or the depth along its rays (a light at
+    infinity, w = 0) of points ``x`` (numpy (…, 3) or Dr.Jit Point3f, about the tree's origin)."""
+    l, w = light[:3], float(light[3])
+    if isinstance(x, np.ndarray):
+        return np.linalg.norm(x - l, axis=-1) if w else -(x @ (l / np.linalg.norm(l)))
+    if w:
+        return dr.norm(x - mi.Point3f(*[float(c) for c in l]))
+    d = l / np.linalg.norm(l)
+    return -dr.dot(mi.Vector3f(x), mi.Vector3f(*[float(c) for c in d]))
+
+
+def triangle_near(V: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """Per triangle a lower bound of :func:`light_distance` over its points: for a light at infinity
+    the smallest of its vertices' depths (exact: the depth is linear), for a point light the distance
+    to its bounding sphere about the centroid."""
+    if light[3] == 0.0:
+        return light_distance(V, light).min(axis=1)
+    c = V.mean(axis=1)
+    r = np.linalg.norm(V - c[:, None], axis=-1).max(axis=1)
+    return np.maximum(light_distance(c, light) - r, 0.0)
+
+
+def subtree_near(own: np.ndarray, child: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """The minimum of ``own`` over each node and its descendants (children sit one level deeper:
+    a pass per level, deepest first, over all the nodes of that level at once)."""
+    near = own.astype(np.float64).copy()
+    for lv in range(int(level.max(initial=0)), 0, -1):
+        k = np.nonzero(level == lv)[0]
+        for j in range(3):
+            c = child[k, j]
+            has = c >= 0
+            near[k[has]] = np.minimum(near[k[has]], near[c[has]])
+    return near
 
 
 def stack_size(tree: TopTree) -> int:
@@ -279,10 +324,12 @@ def offset_point(tree: TopTree, p, ng):
     return mi.Point3f(dr.fma(mag, ng, p)) - o
 
 
-def query(tree: TopTree, x, active=True):
+def query(tree: TopTree, x, active=True, deep: bool = True):
     """Algorithm 2 at points ``x`` (Dr.Jit Point3f about ``tree.origin``, e.g. from
     :func:`offset_point`) where ``active``: (visibility Float, 1 lit / 0 shadowed; nodes visited
-    UInt32; the deepest level visited, UInt32). Inactive points and an empty tree give 1, 0, 0."""
+    UInt32; the deepest level visited, UInt32). Inactive points and an empty tree give 1, 0, 0.
+    ``deep``: a node whose subtree's triangles all lie farther from the light than the point
+    (:attr:`TopTree.near`) cannot shadow it and is skipped with its subtree [Mora 2016]."""
     m = dr.width(x)
     if tree.nodes == 0:
         return dr.full(mi.Float, 1.0, m), dr.zeros(mi.UInt32, m), dr.zeros(mi.UInt32, m)
@@ -293,6 +340,9 @@ def query(tree: TopTree, x, active=True):
     vis = dr.full(mi.Float, 1.0, m)
     visits = dr.zeros(mi.UInt32, m)
     deepest = dr.zeros(mi.UInt32, m)
+    deep = deep and tree.near is not None
+    if deep:   # a margin of float rounding: prune only what lies clearly beyond the point
+        dx = light_distance(x, tree.light) + 1e-6 * (1.0 + float(np.abs(tree.planes[:, 3]).max(initial=0.0)))
 
     def body(sp, vis, visits, deepest, stack):
         sp = dr.maximum(sp, 1) - 1  # lanes already done still run the body in a packet: keep indices in range
@@ -300,14 +350,15 @@ def query(tree: TopTree, x, active=True):
         val = (dr.gather(mi.Float, A["a"], n) * x.x + dr.gather(mi.Float, A["b"], n) * x.y
                + dr.gather(mi.Float, A["c"], n) * x.z + dr.gather(mi.Float, A["d"], n))
         cap = dr.gather(mi.Bool, A["cap"], n)
-        shadow = cap & (val < 0.0)
+        live = (dx >= dr.gather(mi.Float, A["near"], n)) if deep else mi.Bool(True)
+        shadow = live & cap & (val < 0.0)
         vis = dr.select(shadow, 0.0, vis)
         ci = dr.gather(mi.Int32, A["i"], n)
         side = dr.select(cap | (val > 0.0), dr.gather(mi.Int32, A["p"], n), dr.gather(mi.Int32, A["n"], n))
-        push_i = ~shadow & (ci >= 0)
+        push_i = live & ~shadow & (ci >= 0)
         stack.write(ci, sp, push_i)
         sp = dr.select(push_i, sp + 1, sp)
-        push_s = ~shadow & (side >= 0)
+        push_s = live & ~shadow & (side >= 0)
         stack.write(side, sp, push_s)
         sp = dr.select(push_s, sp + 1, sp)
         sp = dr.select(shadow, 0, sp)

@@ -4,7 +4,9 @@
 ``dpsv``: each shading point's visibility of the light's centre from the light's TOP tree
 (:mod:`shadowlab.render.top_tree`: Algorithm 1 builds it from every triangle of the scene,
 Algorithm 2 queries it with a per-point stack). It is exact up to the tolerance of a Mitsuba
-shadow ray, which it shares.
+shadow ray, which it shares. The "deep" part (§1, [Mora 2016]; ``deep``): every node keeps a lower
+bound of the light distance (light-space depth for a directional light) of the triangles below
+it, and a query skips the nodes whose triangles all lie beyond the point: they cannot shadow it.
 
 ``sm_dpsv`` (§1.3, fused hard shadows). The point is projected into ``hard``'s shadow map
 (every bias of ``hard``, :data:`~shadowlab.techniques.shadow_map.BIAS_PARAMS`). Its depth test
@@ -83,6 +85,10 @@ TREE_PARAMS = (
     Param("segments", 64, "int", 3, 1024, "segments", False, source="[Wang 2022, §1.2]",
           doc="tessellation of curved primitives (sphere, disk, cylinder) into the tree's triangles; meshes, "
               "cubes and rectangles are exact"),
+    Param("deep", True, "bool", source="[Mora 2016]",
+          doc="skip a tree node whose subtree's triangles all lie farther from the light than the point (the "
+              "light-space depth of deep partitioned shadow volumes); the visibility is the same, the nodes "
+              "visited fewer"),
     Param("order", "random", "choice", choices=ORDERS, source="[Gerhards 2015]",
           doc="insertion order of Algorithm 1: random = a fixed permutation (shallow trees), light = nearest to "
               "the light first, scene = as the scene lists them; the visibility does not depend on it, the "
@@ -119,7 +125,7 @@ def tree_visibility(frame, light, values, active):
     points where ``active``."""
     tree = frame.top_tree(light.name, int(values["segments"]), values["order"])
     gb = frame.gbuffer
-    vis, visits, deepest = query(tree, offset_point(tree, gb.p, gb.ng), active)
+    vis, visits, deepest = query(tree, offset_point(tree, gb.p, gb.ng), active, deep=bool(values["deep"]))
     return vis, {"nodes_visited": mi.Float(visits), "depth_visited": mi.Float(deepest)}, tree
 
 
