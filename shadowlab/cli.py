@@ -271,7 +271,10 @@ def _reference_done(path, meta):
 @app.command()
 def references(store: Optional[str] = ReferencesOpt):
     """List the stored references (and the built-in scenes' committed ones the store does not hold)."""
+    from .reference.location import locate
     from .reference.store import list_references
+    loc = locate()
+    typer.echo(f"reference store: {loc.path} (from {loc.source})", err=True)
     for r in list_references():
         m = r["meta"]
         se = m.get("max_std_error")

@@ -126,6 +126,7 @@ def test_cli_writes_into_the_project_store_and_reads_it_back(project, tmp_path):
     assert (project / "tests" / "baselines" / "mine" / "24x24" / "truth.exr").is_file()
     r = _cli("references", cwd=cwd)
     assert str(project / "tests" / "baselines" / "mine" / "24x24") in r.stdout
+    assert f"reference store: {project / 'tests' / 'baselines'} (from {project / 'pyproject.toml'})" in r.stderr
     other = tmp_path / "other"
     r = _cli("reference", "../mine.toml", *args, "--references", str(other), cwd=cwd)
     assert r.returncode == 0, r.stderr
