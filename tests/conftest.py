@@ -72,6 +72,8 @@ SLOW_FILES = {
     "test_light_mix.py": 25,            # 6 tests: techniques per light on two_lights and many_lights, a fit
     "test_suggested_commands.py": 13,   # 1 test: reference, fit and the pasted compare through the CLI
     "test_engines.py": 43,              # 11 tests: three.js and Babylon.js in headless Chromium
+    "test_reliability_scheduler.py": 45,  # 7 tests: real shadowlab processes against silent or foreign servers
+    "test_reliability_interrupt.py": 27,  # 1 test: Ctrl-C of a real reference --workers 2
 }
 
 
@@ -100,6 +102,12 @@ SLOW_TESTS = {
     "test_cascades.py::test_the_report_colours_the_cascades": 1.9,
     "test_store_faults.py::test_two_writers_creating_one_reference_one_wins_the_other_exits_2": 1.8,
     "test_export.py::test_shadow_camera_is_the_map_hard_samples": 1.6,
+    "test_reliability_exits.py::test_out_on_a_mount_point_of_its_own_is_written": 16.1,
+    "test_reliability_exits.py::test_a_report_on_a_full_disk_exits_3": 14.7,
+    "test_reliability_exits.py::test_out_across_devices_in_process": 13.6,
+    "test_reliability_vacuous.py::test_on_a_cluster_the_refusal_is_one_line_without_a_dask_dump": 14.2,
+    "test_reliability_messages.py::test_the_same_scene_twice_is_refused_before_any_work[dask]": 6.0,
+    "test_reliability_messages.py::test_a_reader_during_a_swap_waits_for_the_new_reference": 8.0,
 }
 
 
