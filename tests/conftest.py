@@ -71,7 +71,7 @@ SLOW_FILES = {
     "test_applicability.py": 20,        # 6 tests: compare -t all and fit --all through the CLI
     "test_light_mix.py": 25,            # 6 tests: techniques per light on two_lights and many_lights, a fit
     "test_suggested_commands.py": 13,   # 1 test: reference, fit and the pasted compare through the CLI
-    "test_engines.py": 43,              # 11 tests: three.js and Babylon.js in headless Chromium
+    "test_engines.py": 64,              # 13 tests: three.js and Babylon.js in headless Chromium
     "test_reliability_scheduler.py": 45,  # 7 tests: real shadowlab processes against silent or foreign servers
     "test_reliability_interrupt.py": 27,  # 1 test: Ctrl-C of a real reference --workers 2
 }
