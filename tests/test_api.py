@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import shadowlab
+from shadowlab.techniques import get
 from shadowlab import cli, pipeline
 from shadowlab.errors import InputError
 
@@ -77,10 +78,13 @@ def test_compare_all_runs_every_technique_that_applies(tiny, tmp_path, capsys, m
     monkeypatch.setenv("SHADOWLAB_REFERENCES", str(base))
     rc = cli.main(["compare", str(scene), "-t", "all", "--out", str(tmp_path / "r")])
     out, err = capsys.readouterr()
-    applies = [n for n, why in shadowlab.techniques_for(str(scene)).items() if why is None]
-    skipped = [n for n, why in shadowlab.techniques_for(str(scene)).items() if why]
+    why = shadowlab.techniques_for(str(scene))
+    external = [n for n in why if get(n).external]      # real engines run only when named
+    applies = [n for n, w in why.items() if w is None and n not in external]
+    skipped = [n for n, w in why.items() if w and n not in external]
     assert rc == 0, err
     assert skipped and all(f"skipping {n}:" in err for n in skipped)
+    assert external and f"not in all: {', '.join(external)}" in err
     import json
     metrics = json.loads((tmp_path / "r" / "metrics.json").read_text())
     assert sorted(metrics["techniques"]) == sorted(applies)
@@ -94,7 +98,7 @@ def test_fit_all_lists_what_does_not_apply(tiny, tmp_path, capsys, monkeypatch):
     out, err = capsys.readouterr()
     assert rc == 0, err
     for n, why in shadowlab.techniques_for(str(scene)).items():
-        if why:
+        if why and not get(n).external:
             assert f"| {n} | skipped: {why.split(':')[0]}" in out, n
 
 
