@@ -29,9 +29,9 @@ orthographic frustum to the casters itself, ``autoUpdateExtends``). Babylon know
 outside PCSS's ``contactHardeningLightSizeUVRatio``.
 
 On spot lights (the rect and disk lights) Babylon's comparison-sampler filters (``babylon:pcf``,
-``babylon:pcss``) lose shadow rather than blur it, on SwiftShader, whatever the adapter's depth range,
-cone or comparison-texture format; ``tests/test_engines.py`` pins it and docs/engines.md gives the
-evidence. The unfiltered map, Poisson and the ESMs are not affected.
+``babylon:pcss``) lose shadow rather than blur it, on SwiftShader and on Mesa llvmpipe alike,
+whatever the adapter's depth range, cone or comparison-texture format; ``tests/test_engines.py``
+pins it and docs/engines.md gives the evidence. The unfiltered map, Poisson and the ESMs are not affected.
 
 Refused with the reason (exit 2): translucent casters (Babylon's ``transparencyShadow`` casts
 alpha-blended shadows, not the truth's coloured transmittance), ``babylon:csm`` with a light that
