@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+from conftest import CUDA
 from shadowlab.reference import store
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,7 +54,13 @@ def test_ctrl_c_of_a_cluster_batch_says_which_references_were_stored(tmp_path):
     assert p.returncode == 130, (out, err)
     lines = [l for l in err.splitlines() if l.strip()]
     a, b, slow = (store.path_for(n, (r, r), base) for n, r in (("a", 16), ("b", 16), ("slow", 1024)))
-    assert lines == [f"interrupted by SIGINT: stored 2 of 3 references ({a}, {b}); not stored, each left as it "
-                     f"was: {slow}"], err
-    assert sorted(str(m.parent) for m in base.rglob("meta.json")) == sorted([str(a), str(b)])
-    assert not slow.exists()
+    # the line says what the store holds once the workers have stopped (a job a worker had begun may
+    # end first: on a GPU the 1024² truth does; on the CPU it takes far longer than the shutdown)
+    stored = {str(m.parent) for m in base.rglob("meta.json")}
+    done, rest = [x for x in (a, b, slow) if str(x) in stored], [x for x in (a, b, slow) if str(x) not in stored]
+    assert {str(a), str(b)} <= stored and (CUDA or rest == [slow]), stored
+    want = f"interrupted by SIGINT: stored {len(done)} of 3 references ({', '.join(map(str, done))})"
+    if rest:
+        want += f"; not stored, each left as it was: {', '.join(map(str, rest))}"
+    assert lines == [want], err
+    assert slow.exists() == (str(slow) in stored)

@@ -162,13 +162,21 @@ def reference_batch(scenes: list[str], resolution=None, frames=None, *, executor
         return ex.map(render_reference_job, jobs, desc="references", progress=progress and not isinstance(ex, Embedded))
     except Interrupted as e:
         if len(jobs) > 1 and not e.detail:
-            e.detail = interrupted_detail(jobs)
+            # a job a worker is running still saves when it ends: stop the workers first (a local
+            # cluster's processes end with it), then read what the store holds
+            remote = not isinstance(ex, Embedded) and getattr(ex, "cluster", None) is None
+            try:
+                ex.close()
+            except (Exception, Interrupted):   # a second signal or a closing error: still say what is stored
+                pass
+            e.detail = interrupted_detail(jobs, remote=remote)
         raise
 
 
-def interrupted_detail(jobs: list[ReferenceJob]) -> str:
+def interrupted_detail(jobs: list[ReferenceJob], *, remote: bool = False) -> str:
     """What an interrupted batch left: which references its jobs had stored (their run id in
-    meta.json) and which not (nothing partial of those: the store's saves are atomic)."""
+    meta.json) and which not (nothing partial of those: the store's saves are atomic). ``remote``:
+    the jobs ran on a cluster shadowlab did not start, whose workers finish a job they had begun."""
     done = [j for j in jobs if j.dest and store.stored_by_run(Path(j.dest), j.run) is not None]
     rest = [j for j in jobs if j not in done]
     text = f"stored {len(done)} of {len(jobs)} references"
@@ -176,6 +184,8 @@ def interrupted_detail(jobs: list[ReferenceJob]) -> str:
         text += " (" + ", ".join(j.dest for j in done) + ")"
     if rest:
         text += "; not stored, each left as it was: " + ", ".join(j.dest or j.scene for j in rest)
+        if remote:
+            text += " (a job the cluster's workers had begun may still store its reference when it ends)"
     return text
 
 
