@@ -692,7 +692,7 @@ def _interrupted(signum: int, detail: str = "") -> int:
 def _exit_code(e: BaseException) -> int:
     """Print the one line for an exception that ended a command; return its exit code."""
     if isinstance(e, Interrupted):
-        return _interrupted(e.signum, e.detail)
+        return _interrupted(e.signum, e.detail() if callable(e.detail) else e.detail)
     if _signal_state["caught"] is not None and not isinstance(e, SystemExit):
         # the signal arrived inside a C extension or an import, which wrapped it in its own error
         return _interrupted(_signal_state["caught"])

@@ -50,7 +50,8 @@ class Interrupted(BaseException):
     ``KeyboardInterrupt``: ``except Exception`` does not swallow it, while the ``except
     BaseException: clean up; raise`` blocks of the atomic writers remove what they had begun.
     The exit code is 128 + the signal number (130 for SIGINT, 143 for SIGTERM); ``detail`` is what
-    the command left behind, for the one line the CLI prints."""
+    the command left behind, for the one line the CLI prints (a callable: read when the line is
+    printed, after the command has closed what it opened)."""
 
     def __init__(self, signum: int, detail: str = ""):
         super().__init__(signum, detail)

@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-from conftest import CUDA
+from conftest import llvm_only
 from shadowlab.reference import store
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -29,6 +29,7 @@ def _scene(d: Path, name: str, res: int) -> Path:
     return p
 
 
+@llvm_only("the batch needs a job still running when the signal lands: on a GPU the 1024² truth ends first")
 def test_ctrl_c_of_a_cluster_batch_says_which_references_were_stored(tmp_path):
     scenes = [_scene(tmp_path, "a", 16), _scene(tmp_path, "b", 16), _scene(tmp_path, "slow", 1024)]
     base = tmp_path / "refs"
@@ -54,11 +55,10 @@ def test_ctrl_c_of_a_cluster_batch_says_which_references_were_stored(tmp_path):
     assert p.returncode == 130, (out, err)
     lines = [l for l in err.splitlines() if l.strip()]
     a, b, slow = (store.path_for(n, (r, r), base) for n, r in (("a", 16), ("b", 16), ("slow", 1024)))
-    # the line says what the store holds once the workers have stopped (a job a worker had begun may
-    # end first: on a GPU the 1024² truth does; on the CPU it takes far longer than the shutdown)
+    # the line says what the store holds once the workers have stopped (read after the executor closed)
     stored = {str(m.parent) for m in base.rglob("meta.json")}
     done, rest = [x for x in (a, b, slow) if str(x) in stored], [x for x in (a, b, slow) if str(x) not in stored]
-    assert {str(a), str(b)} <= stored and (CUDA or rest == [slow]), stored
+    assert {str(a), str(b)} <= stored and rest == [slow], stored
     want = f"interrupted by SIGINT: stored {len(done)} of 3 references ({', '.join(map(str, done))})"
     if rest:
         want += f"; not stored, each left as it was: {', '.join(map(str, rest))}"

@@ -162,14 +162,10 @@ def reference_batch(scenes: list[str], resolution=None, frames=None, *, executor
         return ex.map(render_reference_job, jobs, desc="references", progress=progress and not isinstance(ex, Embedded))
     except Interrupted as e:
         if len(jobs) > 1 and not e.detail:
-            # a job a worker is running still saves when it ends: stop the workers first (a local
-            # cluster's processes end with it), then read what the store holds
+            # a job a worker is running still saves when it ends: the store is read when the line is
+            # printed, after the command has closed its executor (a local cluster's workers with it)
             remote = not isinstance(ex, Embedded) and getattr(ex, "cluster", None) is None
-            try:
-                ex.close()
-            except (Exception, Interrupted):   # a second signal or a closing error: still say what is stored
-                pass
-            e.detail = interrupted_detail(jobs, remote=remote)
+            e.detail = lambda: interrupted_detail(jobs, remote=remote)
         raise
 
 
