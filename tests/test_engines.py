@@ -275,3 +275,19 @@ def test_technique_names_with_a_colon_pass_every_parser():
         {"three:pcf": {"bias": (-0.005, 0.0), "radius": (0.5, 3.0)}}
     with pytest.raises(InputError, match="names technique 'babylon:pcf'"):
         parse_range("babylon:pcf.bias=0:0.01:3", "three:pcf")
+
+
+def test_an_engine_in_a_technique_per_light_shadows_its_own_light(engine, mitsuba_backend):
+    """two_lights: the page holds both lights; in a mix the second light ('cool') takes the
+    engine's own 'cool' visibility, not another light's."""
+    from shadowlab.render.frame import make_frame
+    from shadowlab.scene import load
+    frame = make_frame(load("two_lights", resolution=(64, 48)), u_strata=1)
+    from shadowlab.techniques import get
+    engine.close_session()                  # the mix loads the page itself (a page is kept per scene)
+    mix = get("warm=hard,cool=three:basic").render(frame)
+    engine.close_session()
+    alone = get("three:basic").render(frame)
+    v_mix, v_cool, v_warm = (np.asarray(r.visibility[n].numpy()) for r, n in
+                             ((mix, "cool"), (alone, "cool"), (alone, "warm")))
+    assert np.array_equal(v_mix, v_cool) and not np.array_equal(v_cool, v_warm)

@@ -339,17 +339,6 @@ class Run(_Record):
         v["lights"] = list(self.lights)
         return {**v, **self.extras}
 
-    def with_extras(self, **extras) -> Run:
-        """The same run with ``extras`` added (or replaced), e.g. a gate's verdict."""
-        return dataclasses.replace(self, extras={**self.extras, **extras})
-
-    def with_images(self, **images) -> Run:
-        """The same run with some of its images replaced (``mitsuba=``, ``emitter=``), checked."""
-        if self.images is None:
-            raise InputError("run.images: this run has no images to replace")
-        d = {**self.images, **images}
-        return dataclasses.replace(self, images=RunImages.checked(d, self.hw, self.lights, self.techniques))
-
     def to_json(self) -> dict:
         """The run without its images, as plain JSON (what metrics.json holds)."""
         return to_jsonable({k: v for k, v in self.items() if k != "images"})

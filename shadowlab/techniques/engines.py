@@ -242,8 +242,8 @@ class EngineTechnique(Technique):
         with tempfile.TemporaryDirectory(prefix="shadowlab-glb-") as d:
             manifest = gltf.write_glb(frame.scene, Path(d) / "scene.glb", resolution=(W, H))
             glb = (Path(d) / "scene.glb").read_bytes()
-        lights = []
-        for entry, l in zip(manifest["lights"], frame.lights):
+        lights = []                      # the page holds every light of the scene (the glb's, in its order),
+        for entry, l in zip(manifest["lights"], spec.lights):   # also for a frame that shows fewer
             lights.append({"name": l.name, "node": entry["node"], "kind": l.kind, "type": entry["type"],
                            "direction": [float(x) for x in lights_mod.forward(l)],
                            "position": [float(x) for x in (l.position or (0.0, 0.0, 0.0))]})

@@ -8,8 +8,7 @@ parameters are its technique's, named ``LIGHT.PARAM`` (``softbox.light_scale``),
 each light's own values. The base class's loop over the lights is where the mix happens: each
 light's technique renders a frame that shows that light only
 (:meth:`~shadowlab.render.frame.FrameContext.for_lights`), sharing the G-buffer and the light
-views. A technique that owns its whole render (an engine: one page draws every light) renders the
-whole frame, and the mix takes its light's result.
+views.
 
 >>> mix = parse("sun=csm, *=pcss")
 >>> mix.assignment(["sun", "softbox", "bulb"])
@@ -116,15 +115,13 @@ class LightMix(Technique):
 
     def fit_params(self, values: dict) -> tuple:
         return tuple(f"{slot}.{p}" for slot, t in self.slots()
-                     for p in get(t).fit_params(self._values_of(slot if slot != "*" else "*", values)))
+                     for p in get(t).fit_params(self._values_of(slot, values)))
 
     def prepare(self, frame, values, ctx) -> None:
         ctx.results = {}
         for ln, t in self.assignment([l.name for l in frame.lights]).items():
             tech = get(t)
-            owns_render = type(tech).render is not Technique.render
-            sub = frame if owns_render else frame.for_lights([ln])
-            ctx.results[ln] = (tech, tech.render(sub, self._values_of(ln, values)))
+            ctx.results[ln] = (tech, tech.render(frame.for_lights([ln]), self._values_of(ln, values)))
 
     def render_light(self, frame, light, values, ctx) -> LightResult:
         tech, r = ctx.results[light.name]
