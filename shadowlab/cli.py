@@ -445,6 +445,37 @@ def fit(
 
 
 @app.command()
+def transfer(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene (needs its stored "
+                                         "reference)."),
+             technique: str = typer.Option(..., "--technique", "-t", help="The shadowlab technique whose values are "
+                                           "transferred (hard, pcf)."),
+             to: str = typer.Option(..., "--to", help="The engine technique that receives them (three:basic, "
+                                    "three:pcf)."),
+             preset: Optional[str] = typer.Option(None, "--preset", help="The technique's values from a preset file "
+                                                  "(e.g. the one shadowlab fit saved); --set overrides it."),
+             set_: List[str] = typer.Option([], "--set", help="TECHNIQUE.PARAM=VALUE: the technique's values, or the "
+                                            "engine's settings the transfer keeps (e.g. three:pcf.mapSize=1024)."),
+             fit_engine: bool = typer.Option(False, "--fit-engine", help="Also fit the engine itself, for its error "
+                                             "beside the transferred values'."),
+             save_preset: Optional[str] = typer.Option(None, "--save-preset", help="Write the transferred values as "
+                                                       "a preset of the engine's property names (.json or .toml)."),
+             resolution: Optional[str] = typer.Option(None, "--resolution", "-r"),
+             force: bool = typer.Option(False, "--force", help="Replace a --save-preset file shadowlab did not write."),
+             variant: Optional[str] = VariantOpt, references: Optional[str] = ReferencesOpt):
+    """Map a shadowlab technique's values onto an engine's shadow parameters (per receiver point in world
+    units, the median over the points) and give the engine's error with them against its defaults."""
+    from .fit.transfer import summary as transfer_summary
+    from .fit.transfer import transfer as run_transfer
+    from .pipeline import parse_resolution
+    _init(variant)
+    rec = run_transfer(scene, technique, to, sets=set_, preset=preset, resolution=parse_resolution(resolution),
+                       save_preset=save_preset, force=force, fit_engine=fit_engine)
+    typer.echo(transfer_summary(rec))
+    if save_preset:
+        typer.echo(f"preset: {save_preset}")
+
+
+@app.command()
 def sweep(scenes_: List[str] = typer.Argument(..., metavar="SCENE...", help="Built-in scene names or paths to "
                                               ".toml scenes (each needs its stored reference)."),
           technique: str = typer.Option(..., "--technique", "-t", help="The technique whose parameter is swept."),

@@ -30,8 +30,10 @@ none), and ``three:csm`` with a light that is not directional.
 
 from __future__ import annotations
 
+import numpy as np
+
 from .base import Param, register
-from .engines import EngineTechnique
+from .engines import EngineTechnique, ReceiverPoints
 
 SOURCE = "[Cabello 2026]"
 PACKAGE = "three"
@@ -56,6 +58,23 @@ _RADIUS_VSM = Param("radius", 1.0, "float", 0.0, 32.0, "texels", source=SOURCE,
                     doc="LightShadow.radius: the radius of VSMShadowMap's blur of the moments")
 _BLUR = Param("blurSamples", 8, "int", 1, 64, "samples", source=SOURCE,
               doc="LightShadow.blurSamples: taps of VSMShadowMap's separable blur")
+
+
+#: variance per axis of one hardware 2×2 comparison tap (a tent one texel wide), in texels²
+BILINEAR_TAP_VARIANCE = 1.0 / 6.0
+#: variance per axis of PCFShadowMap's 5 Vogel-disk taps at radius 1 (offsets √((i + ½)/5): mean square ½)
+VOGEL5_VARIANCE = 0.25
+
+
+def depth_bias(points: ReceiverPoints) -> dict:
+    """three.js's ``bias`` (added to the receiver's window depth: negative moves it toward the light)
+    and ``normalBias`` (world units along the receiver's normal) that do at each point what shadowlab did.
+
+    >>> pts = ReceiverPoints(*(np.array([x]) for x in (0.02, 0.01, 0.0, 4.0, 0.01, 0.03)))
+    >>> {k: [round(float(x), 6) for x in v] for k, v in depth_bias(pts).items()}
+    {'bias': [-0.0006], 'normalBias': [0.01]}
+    """
+    return {"bias": -points.dz * points.engine_depth_per_unit, "normalBias": points.normal}
 
 
 class _Three(EngineTechnique):
@@ -83,9 +102,13 @@ class ThreeBasic(_Three):
     summary = "three.js r187 in Chromium: unfiltered shadow-map test"
     shadow_type = "basic"
     params = (_BIAS, _NORMAL_BIAS, _MAP_SIZE, _NEAR, _FAR, _EXTENT)
+    transfer_from = ("hard",)
 
     def fit_params(self, values: dict) -> tuple:
         return ("bias", "normalBias")
+
+    def from_shadowlab(self, points: ReceiverPoints) -> dict:
+        return depth_bias(points)
 
 
 @register
@@ -97,9 +120,18 @@ class ThreePcf(_Three):
     summary = "three.js r187 in Chromium: 5 hardware-PCF taps on a Vogel disk"
     shadow_type = "pcf"
     params = (_BIAS, _NORMAL_BIAS, _RADIUS_PCF, _MAP_SIZE, _NEAR, _FAR, _EXTENT)
+    transfer_from = ("pcf", "hard")
 
     def fit_params(self, values: dict) -> tuple:
         return ("bias", "normalBias", "radius")
+
+    def from_shadowlab(self, points: ReceiverPoints) -> dict:
+        """:func:`depth_bias`, and the ``radius`` whose footprint (5 Vogel taps of radius r texels,
+        each a 2×2 comparison) has shadowlab's filter variance: r²·¼ + ⅙ = σ²/texel² (r = 0 when
+        shadowlab's filter is narrower than one hardware tap)."""
+        var = points.filter_var / points.engine_texel ** 2
+        radius = np.sqrt(np.maximum(var - BILINEAR_TAP_VARIANCE, 0.0) / VOGEL5_VARIANCE)
+        return {**depth_bias(points), "radius": radius}
 
 
 @register

@@ -32,12 +32,13 @@ import json
 import os
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import mitsuba as mi
 import numpy as np
 
-from ..errors import EnvironmentProblem
+from ..errors import EnvironmentProblem, InputError
 from ..io import browser as browser_mod
 from ..scene import gltf
 from ..render.gbuffer import vec_numpy
@@ -191,6 +192,44 @@ def camera_config(frame) -> dict:
             "fovY": cam.fov_y, "near": cam.near, "far": cam.far}
 
 
+@dataclass(frozen=True)
+class ReceiverPoints:
+    """Per receiver point (flat numpy arrays), what a shadowlab shadow-map technique does in world
+    units and the engine's shadow camera there (:mod:`shadowlab.techniques.transfer`): ``dz`` the
+    distance the compared depth moves toward the light, ``normal`` the distance the point moves
+    along its normal, ``filter_var`` the per-axis variance of the filter footprint (m²);
+    ``engine_z`` the depth along the engine camera's axis, ``engine_texel`` its texel's world size,
+    ``engine_depth_per_unit`` its stored depth per world unit."""
+
+    dz: np.ndarray
+    normal: np.ndarray
+    filter_var: np.ndarray
+    engine_z: np.ndarray
+    engine_texel: np.ndarray
+    engine_depth_per_unit: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return int(self.dz.size)
+
+    @classmethod
+    def pooled(cls, parts: list) -> "ReceiverPoints":
+        names = cls.__dataclass_fields__
+        return cls(**{k: np.concatenate([getattr(p, k) for p in parts]) if parts else np.zeros(0) for k in names})
+
+
+def shadow_cameras(stats: dict) -> dict:
+    """light name -> the engine's shadow camera of its one map (the page's ``maps`` entries: position,
+    direction, near, far, resolution, projection and its field of view or half-size), from the
+    ``stats`` of an engine render; lights with cascades or without a camera are left out."""
+    out = {}
+    for name, st in stats.get("lights", {}).items():
+        maps = st.get("maps") or []
+        if len(maps) == 1 and "projection" in maps[0]:
+            out[name] = maps[0]
+    return out
+
+
 class EngineTechnique(Technique):
     """A technique whose shadows a real engine renders. Subclasses set ``engine`` (the npm package
     whose version the stats record), ``page_html`` (the adapter page), ``shadow_type`` (the page's
@@ -227,6 +266,24 @@ class EngineTechnique(Technique):
 
     def engine_values(self, values: dict) -> dict:
         return dict(values)
+
+    #: shadowlab techniques whose parameters :meth:`from_shadowlab` maps onto this engine's
+    transfer_from: tuple = ()
+
+    def from_shadowlab(self, points: ReceiverPoints) -> dict:
+        """Per point, the engine's parameter values that do there what the shadowlab technique
+        does (:mod:`shadowlab.techniques.transfer`): param -> (N,) array."""
+        raise InputError(f"{self.name} has no transfer from shadowlab's techniques; fit it itself")
+
+    def clip_values(self, values: dict) -> dict:
+        """``values`` clipped to the declared ranges (the transfer's medians may fall outside)."""
+        out = {}
+        for k, v in values.items():
+            prm = next(p for p in self.params if p.name == k)
+            lo = prm.lo if prm.lo is not None else v
+            hi = prm.hi if prm.hi is not None else v
+            out[k] = float(min(max(v, lo), hi))
+        return out
 
     def _load(self, frame, sess: Session) -> dict:
         gb = frame.gbuffer

@@ -333,6 +333,14 @@ class PCF(ShadowMapTechnique):
         vis = _accumulate(view, rec, bias, table, count, s, rot, bilinear, g)
         return dr.clip(vis, 0.0, 1.0)
 
+    def filter_variance(self, values: dict) -> float:
+        """Σ wᵢ (softness·oᵢ,x)² over the taps plus one tap's own variance (a nearest test's box
+        1/12, a bilinear tap's tent 1/6), texels² per axis (the grid's and Poisson sets' x and y agree)."""
+        off, w = taps(values["pattern"], int(values["kernel"]), float(values["sigma"]), int(values["rotated_samples"]))
+        s = float(values["softness"])
+        spread = float(np.sum(w * (0.5 * (off[:, 0] ** 2 + off[:, 1] ** 2)) * s * s))
+        return spread + (1.0 / 6.0 if values["bilinear"] else 1.0 / 12.0)
+
     def summarise(self, frame, values, ctx, lights):
         k = len(taps(values["pattern"], int(values["kernel"]), 0.0, int(values["rotated_samples"]))[1])
         return {**super().summarise(frame, values, ctx, lights), "taps_per_point": k,

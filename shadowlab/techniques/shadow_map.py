@@ -440,6 +440,11 @@ class ShadowMapTechnique(Technique):
         """The values :func:`opaque_bias` reads (all of ``BIAS_PARAMS``)."""
         return values
 
+    def filter_variance(self, values: dict) -> float:
+        """Per-axis variance (texels²) of the footprint whose depth tests one point averages: one
+        nearest-texel test is a box one texel wide, 1/12 (what a transfer to an engine's filter matches)."""
+        return 1.0 / 12.0
+
     def prepare(self, frame, values, ctx):
         ctx.bias = opaque_bias(self.bias_values(values))
 

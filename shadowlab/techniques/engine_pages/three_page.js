@@ -198,6 +198,21 @@ function draw(receive, out) {
   S.renderer.setRenderTarget(null);
 }
 
+// the light's shadow camera as the map was rendered with it: what shadowlab's transfer needs to turn
+// world-unit biases and filter widths into this map's depth and texels
+function shadowCamera(light) {
+  const c = light.shadow.camera;
+  c.updateMatrixWorld(true);
+  const e = c.matrixWorld.elements;
+  const m = { resolution: light.shadow.mapSize.x, near: c.near, far: c.far,
+              position: [e[12], e[13], e[14]], direction: [-e[8], -e[9], -e[10]],
+              right: [e[0], e[1], e[2]], up: [e[4], e[5], e[6]] };
+  if (c.isOrthographicCamera) Object.assign(m, { projection: 'orthographic', halfWidth: (c.right - c.left) / 2,
+                                                 halfHeight: (c.top - c.bottom) / 2 });
+  else Object.assign(m, { projection: light.isPointLight ? 'cube' : 'perspective', fovY: c.fov, aspect: c.aspect });
+  return m;
+}
+
 function render(p) {
   const t0 = performance.now();
   const out = [];
@@ -219,8 +234,7 @@ function render(p) {
       v[k] = Math.min(1.0, Math.max(0.0, r));
     }
     const sm = S.csm ? S.csm.lights.map((l) => ({ resolution: l.shadow.mapSize.x }))
-                     : [{ resolution: entry.light.shadow.mapSize.x, near: entry.light.shadow.camera.near,
-                          far: entry.light.shadow.camera.far }];
+                     : [shadowCamera(entry.light)];
     maps.push(sm);
     const item = { name: entry.name, vis: b64(v), above_one: bad };
     if (!S.sentLit.has(entry.name)) {

@@ -1,0 +1,88 @@
+"""``shadowlab transfer``: a shadowlab technique's values mapped onto an engine's parameters, and
+what the engine's error is with them.
+
+The mapping is :mod:`shadowlab.techniques.transfer` (per receiver point in world units, the median
+over the points). This job measures it against the truth with the engine's own loss
+(:func:`~shadowlab.fit.run.default_loss`): shadowlab's technique at its values, the engine at its
+defaults, the engine with the transferred values and, with ``fit_engine``, the engine after its own
+fit (the same search ``shadowlab fit -t ENGINE`` runs). It saves the transferred values as a preset
+of the engine's own property names.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import InputError
+from ..reference import store
+from ..techniques import base as tbase
+from ..techniques import transfer as T
+from . import preset as P
+from .objective import Objective
+from .run import Budget, default_loss, execute, plan, prepare
+
+
+def transfer(scene: str, source: str, target: str, *, sets=None, preset=None, loss: str | None = None,
+             resolution=None, base: Path | None = None, save_preset=None, force: bool = False,
+             fit_engine: bool = False, budget: Budget | None = None) -> dict:
+    """The ``shadowlab transfer`` job (module docstring). ``sets``: ``TECHNIQUE.PARAM=VALUE`` for the
+    source (its values) and the target (the engine settings the transfer keeps, e.g. ``mapSize``);
+    ``preset``: a preset file holding the source's values (e.g. the one ``shadowlab fit`` saved)."""
+    src, tgt = tbase.get(source), tbase.get(target)
+    T.check_pair(src, tgt)
+    pre = P.load(preset) if preset else None
+    sets_by = tbase.parse_sets(sets or [], [source, target])
+    protected = [base or store.root()]
+    if save_preset is not None:
+        P.check_writable(save_preset, force, protected)
+    sc, truth, meta, frame = prepare(scene, resolution, base)
+    for t in (src, tgt):
+        why = t.unsupported(sc.spec)
+        if why:
+            raise InputError(why)
+    src_values = src.resolve({**(pre.values.get(source, {}) if pre else {}), **sets_by.get(source, {})})
+    eng_base = tgt.resolve(sets_by.get(target, {}))
+    loss = loss or default_loss(target)
+    obj_e = Objective(frame, truth, tgt, loss)
+    obj_s = Objective(frame, truth, src, loss)
+    first = tgt.render(frame, eng_base)                       # the engine's shadow cameras at its settings
+    mapped = T.transfer(frame, src, src_values, tgt, first.stats)
+    eng_t = tgt.resolve({**eng_base, **mapped["values"]})
+    rec = {"scene": sc.name, "resolution": list(sc.resolution), "source": source, "target": target,
+           "loss": obj_e.describe(), "source_values": {k: src_values[k] for k in src.fit_params(src_values)},
+           "source_loss": obj_s.report(obj_s.value(src_values)),
+           "engine_defaults": {k: eng_base[k] for k in mapped["values"]},
+           "engine_loss_defaults": obj_e.report(obj_e.value(eng_base)),
+           "transferred": mapped["values"], "spread": mapped["spread"], "points": mapped["points"],
+           "engine_loss_transferred": obj_e.report(obj_e.value(eng_t))}
+    if fit_engine:
+        own = execute(plan(target, frame, loss=loss, sets=sets_by.get(target, {})), frame, truth, budget or Budget())
+        rec["engine_fit"] = {k: v["fitted"] for k, v in own["params"].items()}
+        rec["engine_loss_fit"] = own["loss_after"]
+        rec["engine_fit_evaluations"] = own["evaluations"]
+    if save_preset is not None:
+        P.save(save_preset, f"{sc.name}-{target}-from-{source}", {target: mapped["values"]},
+               description=f"{source} values transferred to {target} on {sc.name}",
+               meta={"scene": sc.name, "source": source, "loss_transferred": rec["engine_loss_transferred"]},
+               force=force, protected=protected)
+        rec["preset"] = str(save_preset)
+    return rec
+
+
+def summary(rec: dict) -> str:
+    """The terminal lines of a transfer: the values (with their spread over the points) and the losses."""
+    lines = [f"{rec['source']} -> {rec['target']} on {rec['scene']} ({rec['points']} receiver points; "
+             f"loss {rec['loss']['name']})", "",
+             "| parameter | engine default | transferred | 10th-90th percentile over the points |",
+             "|---|---:|---:|---|"]
+    for k, v in rec["transferred"].items():
+        lo, hi = rec["spread"][k]
+        lines.append(f"| {k} | {rec['engine_defaults'][k]:.4g} | {v:.4g} | {lo:.4g} … {hi:.4g} |")
+    lines += ["", "| | loss |", "|---|---:|",
+              f"| {rec['source']} (shadowlab) at its values | {rec['source_loss']:.4f} |",
+              f"| {rec['target']} at its defaults | {rec['engine_loss_defaults']:.4f} |",
+              f"| {rec['target']} with the transferred values | {rec['engine_loss_transferred']:.4f} |"]
+    if "engine_loss_fit" in rec:
+        fit = ", ".join(f"{k} {v:.4g}" for k, v in rec["engine_fit"].items())
+        lines.append(f"| {rec['target']} after its own fit ({fit}) | {rec['engine_loss_fit']:.4f} |")
+    return "\n".join(lines)
