@@ -632,15 +632,19 @@ def bench(
         "virtual (virtual shadow maps, virtual.md), dpsv (shadow maps fused with deep partitioned shadow volumes, "
         "dpsv.md), "
         "ssss (layered screen-space soft shadows against kernel and lights, ssss.md), "
-        "scaling (the Dask executor on 1, 2, 4, 8 workers, scaling.md; not in the full run) or truth (the ground "
-        "truth's throughput against raw ray_test, truth.md).",
+        "scaling (the Dask executor on 1, 2, 4, 8 workers, scaling.md; not in the full run), truth (the ground "
+        "truth's throughput against raw ray_test, truth.md) or frames (every technique's new and warm frame split "
+        "into G-buffer, light views, technique and host time, its kernels and first host sync, beside raw ray_test; "
+        "frames.md; not in the full run).",
     ),
+    size: Optional[str] = typer.Option(None, "--size", help="WIDTHxHEIGHT of --only frames (default 1920x1080; "
+                                       "e.g. 640x360 on a CPU)."),
     variant: Optional[str] = VariantOpt,
 ):
     """Measure ground-truth throughput and technique compile / warm run times."""
     from .bench import run as run_bench
     _init(variant)
-    path_md = run_bench(Path(out), quick=quick, only=only)
+    path_md = run_bench(Path(out), quick=quick, only=only, size=size)
     typer.echo(Path(path_md).read_text())
 
 

@@ -38,6 +38,7 @@ BENCH_PARTS = {
     "dpsv": "Shadow maps with deep partitioned shadow volumes",
     "ssss": "Layered screen-space soft shadows",
     "scaling": "Scaling on Dask",
+    "frames": "Technique frames",
 }
 
 _ORPHAN = "---\norphan: true\n---\n\n"

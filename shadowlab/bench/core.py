@@ -54,9 +54,11 @@ from .cascades import run as cascades_bench
 from .dpsv import run as dpsv_bench
 from .scaling import run as scaling_bench
 from .fit import markdown as fit_markdown
+from .frames import run as frames_bench
 from .fit import measure as bench_fit
 from .sdf import run as sdf_bench
 from .ssss import run as ssss_bench
+from .rays import raw_ray_test
 from .record import write_record
 from .timing import machine_text, timed
 from .virtual import run as virtual_bench
@@ -74,37 +76,6 @@ def _kernels():
         "load_ms": float(sum(k.get("codegen_time", 0) + k.get("backend_time", 0) for k in h if k.get("cache_disk"))),
         "execution_ms": float(sum(k.get("execution_time", 0) for k in h)),
     }
-
-
-@dr.syntax
-def _ray_test_loop(mi_scene, si, emitter, rng, n):
-    """``n`` shadow rays per lane toward uniform points of ``emitter`` (``ray_test`` only): one wavefront."""
-    i = mi.UInt32(0)
-    v = dr.zeros(mi.Float, dr.width(si.p))
-    while i < n:
-        ds, _ = emitter.sample_direction(si, mi.Point2f(rng.next_float32(), rng.next_float32()), True)
-        v += dr.select(mi_scene.ray_test(si.spawn_ray_to(ds.p)), 0.0, 1.0)
-        i += 1
-    return v
-
-
-def raw_ray_test(frame, light: str, spp: int = 256, repeats: int = 3, warmup: int = 1) -> dict:
-    """Raw Mitsuba ``ray_test`` throughput at the frame's valid G-buffer points: ``spp`` shadow
-    rays per point toward points the emitter samples, in one wavefront (a symbolic loop), no
-    BSDF, no bookkeeping: the ceiling the truth's sampler is measured against. Median of
-    ``repeats`` warm runs."""
-    sc, gb = frame.scene, frame.gbuffer
-    idx = np.nonzero(gb.valid.numpy())[0].astype(np.uint32)
-    si = dr.gather(type(gb.si), gb.si, mi.UInt32(idx))
-    rng = mi.PCG32(len(idx), dr.opaque(mi.UInt64, 1), mi.UInt64(dr.arange(mi.UInt32, len(idx))))
-
-    def cast():
-        dr.eval(_ray_test_loop(sc.mi_scene, si, sc.emitters[light], mi.PCG32(rng), dr.opaque(mi.UInt32, spp)))
-
-    _, ts = timed(cast, repeats, warmup=warmup)
-    t = float(np.median(ts))
-    rays = len(idx) * spp
-    return {"points": len(idx), "rays_per_point": spp, "rays": rays, "time_s": t, "rays_per_s": rays / t}
 
 
 def bench_mitsuba_image(scene, spp: int = 256, repeats: int = 3) -> dict:
@@ -418,10 +389,10 @@ def _markdown(res: dict) -> str:
 
 
 #: the parts ``--only`` runs alone
-ONLY = ("sdf", "cascades", "virtual", "dpsv", "ssss", "scaling", "truth")
+ONLY = ("sdf", "cascades", "virtual", "dpsv", "ssss", "scaling", "truth", "frames")
 
 
-def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
+def run(out: Path, quick: bool = False, only: str | None = None, size=None) -> Path:
     """Run every benchmark; write ``out/bench.json`` and ``out/bench.md``; return the .md path.
     ``only="cascades"``: just :mod:`shadowlab.bench.cascades` (``out/cascades.json``, ``out/cascades.md``);
     ``only="sdf"``: just the SDF soft-shadow bench (:mod:`shadowlab.bench.sdf`: ``out/sdf.json``,
@@ -429,9 +400,15 @@ def run(out: Path, quick: bool = False, only: str | None = None) -> Path:
     ``out/virtual.md``, ``out/virtual.png``); ``only="dpsv"``: just :mod:`shadowlab.bench.dpsv`
     (``out/dpsv.json``, ``out/dpsv.md``); ``only="ssss"``: just :mod:`shadowlab.bench.ssss`
     (``out/ssss.json``, ``out/ssss.md``); ``only="truth"``: just the ground-truth part
-    (``out/truth.json``, ``out/truth.md``); the full run writes them all."""
+    (``out/truth.json``, ``out/truth.md``); the full run writes them all. ``only="frames"``: each
+    technique's frame split into its parts (:mod:`shadowlab.bench.frames`: ``out/frames.json``,
+    ``out/frames.md``; not in the full run), at ``size`` ("WxH" or (W, H); default 1920×1080)."""
     if only is not None and only not in ONLY:
         raise InputError(f"--only {only!r}: expected one of {', '.join(ONLY)} (or no --only for every benchmark)")
+    if size is not None and only != "frames":
+        raise InputError(f"--size {size}: only the frames part takes a size; add --only frames, or leave --size out")
+    if only == "frames":
+        return _recorded(Path(out), "frames", frames_bench(Path(out), quick=quick, size=size))
     out = Path(out)
     parts = {"sdf": sdf_bench, "cascades": cascades_bench, "virtual": virtual_bench, "dpsv": dpsv_bench,
              "ssss": ssss_bench, "scaling": scaling_bench}

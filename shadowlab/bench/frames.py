@@ -1,0 +1,324 @@
+"""Every technique's frame, split into its parts: ``shadowlab bench --only frames``
+(``frames.json`` / ``frames.md``; not in the full run, like ``scaling``).
+
+A frame is what a real-time renderer pays per image: the G-buffer, the shadow pass (the light
+views) and the technique's lookups, as [Buljan 2020, §4.5] counts its frames per second (the shadow
+pass included) and [Tamás 2015, §7] its milliseconds. For every technique that applies (its
+``unsupported`` and ``unavailable`` say None; real engines left out) on :data:`PLAN`'s scenes, at
+1920×1080 by default (``--size WxH``), from one run:
+
+* **new frame**: ``make_frame`` (G-buffer and unshadowed light) on a fresh frame, then the
+  technique's render on it, every light view cast anew. Split into *G-buffer* (``make_frame``),
+  *light views* (the wall time of the calls to ``FrameContext.light_view`` and ``top_tree`` that
+  cast a map or built a tree, each between ``dr.sync_thread()`` calls, the view evaluated), and
+  *technique* (the render's wall time less its light views). *Host* is the part of the new frame's
+  wall time in which no kernel ran: wall time minus the kernels' execution times from Dr.Jit's
+  kernel history (``execution_time`` of every entry: JIT kernels, reductions, copies, memsets),
+  i.e. tracing, Python, numpy and waiting on readbacks. It overlaps the other three (it is a share
+  of them, not a fourth addend). Virtual maps cast their tiles inside the technique at every
+  render, without a cache: there the shadow pass is in *technique*, and warm ≈ new;
+* **warm**: the render again on the same frame, its light views cached (median of warm runs);
+* **kernels and transfers** per frame, from the kernel history of the timed new frame and of one
+  more warm render: JIT kernels launched, other entries (reductions, memsets, copies), and
+  ``Memcpy`` entries. What is and is not counted: on the LLVM backend a ``Memcpy`` entry is a
+  copy Dr.Jit makes itself, e.g. a synchronous read of one element (``x[0]``, a reduction's result
+  read into Python); a whole array read into numpy (``.numpy()``, ``np.asarray``) or a numpy
+  array made a Dr.Jit array is plain host memory there and leaves no entry; on CUDA copies are not
+  in the history at all. So the part also reports the **first host synchronisation** of a new and
+  of a warm frame: the frame run again with ``JitFlag.ForbidSynchronization``, which raises at the
+  first wait for the device (a numpy readback, ``dr.sync_thread``, a compress) but not at a
+  one-element read, named by the innermost shadowlab line that caused it;
+* **raw limit**: the same number of rays, texels cast (the technique's ``maps`` stats) plus one
+  tap per valid point and light (the techniques do not report their filters' tap counts, so a k-tap
+  filter's limit is lower than its real work), as Mitsuba ``ray_test`` from the G-buffer's points in
+  one wavefront (:func:`shadowlab.bench.rays.raw_ray_test`), and the new frame's time over it. SDF
+  scenes have no Mitsuba geometry to cast against: no limit there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import math
+import os
+import time
+import traceback
+from pathlib import Path
+
+import drjit as dr
+
+from .. import backend
+from ..errors import InputError
+from ..io.jsonio import write_json_atomic
+from ..io.png import write_bytes_atomic
+from ..pipeline import load_scene
+from ..render.frame import FrameContext, make_frame
+from ..techniques import base
+from .rays import raw_ray_test
+from .timing import machine_text, render_evaluated, timed
+
+#: (scene, which techniques): None = every one that applies; a tuple names them
+PLAN = (("contact", None), ("two_lights", None), ("street", ("csm", "vtsm", "fvsm")),
+        ("many_lights", ("ssss",)), ("mandelbulb", None))
+SIZE = (1920, 1080)
+#: warm renders timed per technique (median)
+REPEATS = 5
+_PACKAGE = str(Path(__file__).resolve().parents[1])
+_BENCH = str(Path(__file__).resolve().parent)
+
+
+@dataclasses.dataclass
+class TimedFrame(FrameContext):
+    """A :class:`~shadowlab.render.frame.FrameContext` that times the light views and TOP trees it
+    casts (while ``timing["on"]``): each call between ``dr.sync_thread()`` calls, the view evaluated,
+    its kernels taken from the kernel history apart from the technique's."""
+
+    timing: dict = dataclasses.field(default_factory=lambda: {"on": True, "views_s": 0.0, "casts": 0,
+                                                              "view_kernels": [], "other_kernels": []})
+
+    @classmethod
+    def of(cls, frame: FrameContext) -> "TimedFrame":
+        return cls(scene=frame.scene, gbuffer=frame.gbuffer, unshadowed=frame.unshadowed, sdf=frame.sdf)
+
+    def _timed(self, cast, made):
+        if not self.timing["on"]:
+            return cast()
+        dr.sync_thread()
+        self.timing["other_kernels"] += dr.kernel_history()
+        n = made()
+        t0 = time.perf_counter()
+        out = cast()
+        dr.eval(out)
+        dr.sync_thread()
+        self.timing["views_s"] += time.perf_counter() - t0
+        self.timing["casts"] += int(made() != n)
+        self.timing["view_kernels"] += dr.kernel_history()
+        return out
+
+    def light_view(self, *args, **kwargs):
+        return self._timed(lambda: super(TimedFrame, self).light_view(*args, **kwargs), lambda: len(self.light_views))
+
+    def top_tree(self, *args, **kwargs):
+        return self._timed(lambda: super(TimedFrame, self).top_tree(*args, **kwargs), lambda: 0)
+
+
+def kernel_summary(entries: list) -> dict:
+    """Counts and times of Dr.Jit kernel-history entries: JIT kernels launched (and compiled),
+    ``Memcpy`` entries (count, bytes), other entries by type, and their execution time (ms)."""
+    jit = [k for k in entries if k.get("type") == dr.KernelType.JIT]
+    copies = [k for k in entries if k.get("type") == dr.KernelType.Memcpy]
+    other: dict = {}
+    for k in entries:
+        if k.get("type") not in (dr.KernelType.JIT, dr.KernelType.Memcpy):
+            name = str(k.get("type")).rsplit(".", 1)[-1]
+            other[name] = other.get(name, 0) + 1
+    return {"jit": len(jit), "compiled": sum(1 for k in jit if not k.get("cache_hit") and not k.get("cache_disk")),
+            "memcpy": len(copies), "memcpy_bytes": int(sum(k.get("size", 0) for k in copies)), "other": other,
+            "execution_ms": float(sum(k.get("execution_time", 0.0) for k in entries))}
+
+
+def first_sync(fn) -> str | None:
+    """Where ``fn`` first waits for the device (``JitFlag.ForbidSynchronization`` raises there): the
+    innermost line of shadowlab outside the bench, as ``module.py:LINE (function)``; None if it
+    never does."""
+    dr.sync_thread()
+    dr.set_flag(dr.JitFlag.ForbidSynchronization, True)
+    try:
+        fn()
+    except RuntimeError as e:
+        if "synchroniz" not in str(e):
+            raise
+        ours = [f for f in traceback.extract_tb(e.__traceback__)
+                if f.filename.startswith(_PACKAGE) and not f.filename.startswith(_BENCH)]
+        if not ours:
+            return "outside shadowlab"
+        f = ours[-1]
+        return f"{os.path.relpath(f.filename, os.path.dirname(_PACKAGE))}:{f.lineno} ({f.name})"
+    finally:
+        dr.set_flag(dr.JitFlag.ForbidSynchronization, False)
+    return None
+
+
+def _texels(stats: dict) -> int:
+    """Texels the render cast: its maps' (or, without maps, its lights' ``texels``)."""
+    total = 0
+    for st in stats.get("lights", {}).values():
+        maps = st.get("maps") or ()
+        total += sum(int(m.get("texels", 0)) for m in maps) if maps else int(st.get("texels", 0) or 0)
+    return total
+
+
+def _history(on: bool) -> None:
+    dr.sync_thread()
+    dr.set_flag(dr.JitFlag.KernelHistory, on)
+    dr.kernel_history_clear()
+
+
+def new_frame(sc, technique, params) -> tuple:
+    """(fresh :class:`TimedFrame`, its result, the split of one new frame) of ``technique``."""
+    _history(True)
+    try:
+        t0 = time.perf_counter()
+        frame = make_frame(sc)
+        dr.sync_thread()
+        t_gb = time.perf_counter() - t0
+        k_gb = dr.kernel_history()
+        tf = TimedFrame.of(frame)
+        t1 = time.perf_counter()
+        r = render_evaluated(technique, tf, params)
+        dr.sync_thread()
+        t_render = time.perf_counter() - t1
+        k_tech = tf.timing["other_kernels"] + dr.kernel_history()
+    finally:
+        _history(False)
+    views_s = min(tf.timing["views_s"], t_render)
+    k_views = tf.timing["view_kernels"]
+    tf.timing["on"] = False
+    total = t_gb + t_render
+    kern = kernel_summary(k_gb + k_views + k_tech)
+    split = {"total_s": total, "gbuffer_s": t_gb, "light_views_s": views_s, "technique_s": t_render - views_s,
+             "host_s": max(total - kern["execution_ms"] / 1e3, 0.0), "casts": tf.timing["casts"],
+             "kernels": kern, "kernels_by_part": {"gbuffer": kernel_summary(k_gb),
+                                                  "light_views": kernel_summary(k_views),
+                                                  "technique": kernel_summary(k_tech)}}
+    return tf, r, split
+
+
+def warm_frame(frame, technique, params, repeats: int) -> dict:
+    """Median warm render (light views cached) and one more render's kernels."""
+    _, ts = timed(lambda: render_evaluated(technique, frame, params), repeats, warmup=1)
+    _history(True)
+    try:
+        t0 = time.perf_counter()
+        render_evaluated(technique, frame, params)
+        dr.sync_thread()
+        tk = time.perf_counter() - t0
+        kern = kernel_summary(dr.kernel_history())
+    finally:
+        _history(False)
+    ts = sorted(ts)
+    return {"time_s": ts[len(ts) // 2], "runs_s": ts, "kernels": kern, "kernels_run_s": tk,
+            "host_s": max(tk - kern["execution_ms"] / 1e3, 0.0)}
+
+
+def raw_limit(frame, rays: int, light: str, cache: dict) -> dict | None:
+    """``rays`` Mitsuba ``ray_test`` rays from the frame's valid points toward ``light`` in one
+    wavefront (:func:`~shadowlab.bench.rays.raw_ray_test`, ⌈rays / points⌉ per point); None on an
+    SDF scene or without valid points."""
+    points = int(dr.count(frame.gbuffer.valid)[0]) if frame.scene.kind == "mitsuba" else 0
+    if points == 0 or rays <= 0:
+        return None
+    spp = max(1, math.ceil(rays / points))
+    if spp not in cache:
+        cache[spp] = raw_ray_test(frame, light, spp=spp, repeats=3, warmup=1)
+    return cache[spp]
+
+
+def measure(sc, name: str, *, repeats: int = REPEATS, raw_cache: dict | None = None) -> dict:
+    """One technique on one loaded scene: new frame, warm, kernels, first syncs, raw limit."""
+    t = base.get(name)
+    p = t.resolve({})
+    new_frame(sc, t, p)                            # compiles every kernel: the timed frame is the next one
+    frame, r, split = new_frame(sc, t, p)
+    warm = warm_frame(frame, t, p, repeats)
+    sync_new = first_sync(lambda: render_evaluated(t, make_frame(sc), p))
+    sync_warm = first_sync(lambda: render_evaluated(t, frame, p))
+    texels = _texels(r.stats)
+    points = int(dr.count(frame.gbuffer.valid)[0])
+    taps = points * len(frame.lights)
+    raw = raw_limit(frame, texels + taps, frame.lights[0].name, {} if raw_cache is None else raw_cache)
+    limit_s = None if raw is None else raw["time_s"] * (texels + taps) / raw["rays"]
+    return {"new": split, "warm": warm, "first_sync": {"new": sync_new, "warm": sync_warm},
+            "texels": texels, "taps": taps, "rays": texels + taps, "raw": raw, "limit_s": limit_s,
+            "new_over_limit": None if not limit_s else split["total_s"] / limit_s}
+
+
+def techniques_on(spec, only=None) -> list[str]:
+    """The techniques of ``only`` (None: every registered one, real engines left out) that apply to
+    ``spec`` and can run here."""
+    names = [n for n in base.names() if not base.get(n).external] if only is None else list(only)
+    return [n for n in names if not (base.get(n).unsupported(spec) or base.get(n).unavailable())]
+
+
+def bench(size=SIZE, plan=PLAN, repeats: int = REPEATS, log=None) -> dict:
+    """Every scene of ``plan`` at ``size`` (W, H): {scene: {technique: :func:`measure`}}."""
+    out = {}
+    for scene, only in plan:
+        sc = load_scene(scene, tuple(size))
+        cache: dict = {}
+        out[scene] = {"lights": len(sc.spec.lights), "kind": sc.kind, "techniques": {}}
+        for n in techniques_on(sc.spec, only):
+            if log:
+                log(f"frames: {scene} {n}")
+            out[scene]["techniques"][n] = measure(sc, n, repeats=repeats, raw_cache=cache)
+    return out
+
+
+def _ms(x) -> str:
+    return "–" if x is None else f"{1e3 * x:.1f}"
+
+
+def _kern(k: dict) -> str:
+    other = sum(k["other"].values())
+    return f"{k['jit']} + {other}"
+
+
+def markdown(res: dict) -> str:
+    m = res["machine"]
+    W, H = res["size"]
+    lines = [f"# Technique frames ({res['date']})", "",
+             f"Machine: {machine_text(m)}. All figures from one run at {W}×{H}"
+             f"{' (--quick: small sizes, not for figures)' if res['quick'] else ''}.", "",
+             "New frame: `make_frame` and the render on a fresh frame, every light view cast anew (ms), split into "
+             "G-buffer, light views (the casts of maps and TOP trees, each synchronised) and technique (the rest "
+             "of the render); host: the new frame's wall time in which no kernel ran (wall minus the kernels' "
+             "execution times from Dr.Jit's kernel history; a share of the other three, not an addend). Warm: the "
+             "render with the light views cached (median). Kernels: JIT kernels + other history entries "
+             "(reductions, memsets, copies); copies: `Memcpy` entries (on LLVM, one-element reads; numpy readbacks "
+             "leave none, and CUDA logs no copies). First sync: where a frame first waits for the device "
+             "(`ForbidSynchronization`). Limit: texels cast + one tap per point and light, as raw `ray_test` rays "
+             "in one wavefront; virtual maps cast their tiles inside the technique at every render.", ""]
+    for scene, d in res["scenes"].items():
+        lines += [f"## `{scene}` ({d['lights']} light{'s' if d['lights'] != 1 else ''})", "",
+                  "| technique | new frame | G-buffer | light views | technique | host | warm | kernels new / warm | "
+                  "copies new / warm | first sync, new frame | first sync, warm | rays (texels + taps) | limit | "
+                  "new / limit |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for n, r in d["techniques"].items():
+            nw, wm = r["new"], r["warm"]
+            lim = r["limit_s"]
+            over = "–" if lim is None else f"{r['new_over_limit']:.0f}×"
+            lines.append(
+                f"| {n} | {_ms(nw['total_s'])} | {_ms(nw['gbuffer_s'])} | {_ms(nw['light_views_s'])} | "
+                f"{_ms(nw['technique_s'])} | {_ms(nw['host_s'])} | {_ms(wm['time_s'])} | "
+                f"{_kern(nw['kernels'])} / {_kern(wm['kernels'])} | {nw['kernels']['memcpy']} / "
+                f"{wm['kernels']['memcpy']} | {r['first_sync']['new'] or 'none'} | "
+                f"{r['first_sync']['warm'] or 'none'} | "
+                f"{r['rays']:,} | {_ms(lim)} | {over} |")
+        lines.append("")
+    return "\n".join(lines) + "\n"
+
+
+def parse_size(text) -> tuple:
+    """``--size WxH`` -> (W, H); InputError (exit 2) for anything else."""
+    try:
+        w, h = (int(x) for x in str(text).lower().replace("×", "x").split("x"))
+    except ValueError:
+        raise InputError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 640x360") from None
+    if not (8 <= w <= 8192 and 8 <= h <= 8192):
+        raise InputError(f"--size {text!r}: expected sizes in 8..8192, e.g. 640x360")
+    return w, h
+
+
+def run(out: Path, quick: bool = False, size=None, plan=PLAN) -> Path:
+    """Measure; write ``out/frames.json`` and ``out/frames.md``; return the .md path. ``size``:
+    (W, H) or ``"WxH"`` (default 1920×1080; ``quick``: 64×36)."""
+    size = parse_size(size) if isinstance(size, str) else tuple(size or ((64, 36) if quick else SIZE))
+    backend.init()
+    res = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": backend.machine_info(),
+           "quick": quick, "size": list(size), "repeats": 2 if quick else REPEATS}
+    res["scenes"] = bench(size, plan, res["repeats"])
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "frames.json", res)
+    return write_bytes_atomic(out / "frames.md", markdown(res).encode())

@@ -1,0 +1,100 @@
+"""``shadowlab bench --only frames``: one small run (64×36, ``contact``, two techniques) and what
+must hold of what it writes: the record's fields, a split that adds up to the frame, the rays it
+counts. Never its speeds."""
+
+import json
+
+import drjit as dr
+import mitsuba as mi
+import pytest
+
+from shadowlab.bench import core, frames, record
+
+PLAN = (("contact", ("hard", "pcf")),)
+
+
+@pytest.fixture(scope="module")
+def bench(mitsuba_backend, tmp_path_factory):
+    out = tmp_path_factory.mktemp("frames-bench")
+    md = frames.run(out, size=(64, 36), plan=PLAN)
+    rec = json.loads(record.write_record(out, "frames", md).read_text(encoding="utf-8"))
+    return {"out": out, "md": md.read_text(encoding="utf-8"), "rec": rec}
+
+
+def test_the_record_has_the_part_machine_and_a_row_per_technique(bench):
+    rec = bench["rec"]
+    assert rec["part"] == "frames" and rec["machine"]["variant"] and rec["machine"]["cores"] >= 1
+    table = next(b for b in rec["blocks"] if b["type"] == "table")
+    for col in ("new frame", "G-buffer", "light views", "technique", "host", "warm", "kernels new / warm",
+                "first sync, new frame", "rays (texels + taps)", "limit"):
+        assert col in table["columns"], col
+    assert [r[0] for r in table["rows"]] == ["hard", "pcf"]
+    res = rec["results"]
+    assert res["size"] == [64, 36] and list(res["scenes"]) == ["contact"]
+    for r in res["scenes"]["contact"]["techniques"].values():
+        for k in ("new", "warm", "first_sync", "texels", "taps", "rays", "raw", "limit_s", "new_over_limit"):
+            assert k in r, k
+
+
+def test_the_split_adds_up_to_the_new_frame(bench):
+    for name, r in bench["rec"]["results"]["scenes"]["contact"]["techniques"].items():
+        n = r["new"]
+        parts = (n["gbuffer_s"], n["light_views_s"], n["technique_s"])
+        assert all(p >= 0 for p in parts), (name, parts)
+        assert sum(parts) <= n["total_s"] * (1 + 1e-9), (name, parts, n["total_s"])
+        assert sum(parts) >= n["total_s"] * (1 - 1e-9), (name, parts, n["total_s"])
+        assert 0 <= n["host_s"] <= n["total_s"]
+        assert n["light_views_s"] > 0 and n["casts"] == 1, name      # contact: one light, one map cast
+        by = n["kernels_by_part"]
+        assert n["kernels"]["jit"] == sum(by[p]["jit"] for p in ("gbuffer", "light_views", "technique")) >= 1
+        assert r["warm"]["kernels"]["jit"] >= 1
+
+
+def test_the_rays_are_the_texels_cast_and_one_tap_per_point(bench, mitsuba_backend):
+    from shadowlab.pipeline import load_scene
+    from shadowlab.render.frame import make_frame
+    sc = load_scene("contact", (64, 36))
+    points = int(dr.count(make_frame(sc).gbuffer.valid)[0])
+    side = sc.spec.lights[0].shadow_map
+    for r in bench["rec"]["results"]["scenes"]["contact"]["techniques"].values():
+        assert r["texels"] == side * side and r["taps"] == points
+        assert r["rays"] == r["texels"] + r["taps"]
+        assert r["raw"]["rays"] >= r["rays"] and r["raw"]["points"] == points
+
+
+def test_first_sync_names_the_readback_and_none_without_one(mitsuba_backend):
+    from shadowlab.pipeline import load_scene
+    from shadowlab.render.frame import make_frame
+    fr = make_frame(load_scene("contact", (16, 12)))
+    x = fr.gbuffer.p.x + 1.0
+    assert frames.first_sync(lambda: dr.eval(x * 2.0)) is None
+    where = frames.first_sync(lambda: fr.gbuffer.to_image(x * 3.0))
+    assert where is not None and where.startswith("shadowlab/render/gbuffer.py:") and "(to_image)" in where
+    assert not dr.flag(dr.JitFlag.ForbidSynchronization)
+
+
+def test_kernel_summary_counts_kernels_and_one_element_reads(mitsuba_backend):
+    dr.sync_thread()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history_clear()
+    try:
+        a = dr.arange(mi.Float, 1000) * dr.opaque(mi.Float, 2.0)
+        dr.eval(a)
+        b = a + dr.opaque(mi.Float, 1.0)
+        dr.eval(b)
+        _ = dr.sum(b)[0]
+        dr.sync_thread()
+        k = frames.kernel_summary(dr.kernel_history())
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert k["jit"] == 2 and k["memcpy"] >= 1 and k["memcpy_bytes"] >= 4 and k["execution_ms"] >= 0
+
+
+def test_frames_is_a_part_and_size_belongs_to_it(tmp_path, capsys):
+    from shadowlab import cli
+    assert "frames" in core.ONLY
+    assert cli.main(["bench", "--only", "truth", "--size", "64x36", "--out", str(tmp_path / "b")]) == 2
+    assert "--only frames" in capsys.readouterr().err
+    assert cli.main(["bench", "--only", "frames", "--size", "64by36", "--out", str(tmp_path / "c")]) == 2
+    assert "WIDTHxHEIGHT" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists() and not (tmp_path / "c").exists()
