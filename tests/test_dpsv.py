@@ -237,31 +237,72 @@ def test_soft_matches_the_truth_like_pcss(planes):
     assert m["sm_dpsv_soft"]["leak_rate"] == 0.0
 
 
+PANEL = {"name": "L", "kind": "rect", "position": [0.0, 4.0, 0.0], "target": [0.0, 0.0, 0.0],
+         "up": [0.0, 0.0, 1.0], "size": [1.0, 1.0], "power": 100.0, "shadow_map": 1024}
+EDGE_SHAPES = [{"name": "floor", "type": "rectangle", "rotate": [1, 0, 0, -90], "scale": 4.0},
+               {"name": "blocker", "type": "rectangle", "rotate": [1, 0, 0, -90], "translate": [-2.0, 2.0, 0.0],
+                "scale": [2.0, 3.0, 1.0]}]
+
+
 def test_soft_penumbra_has_the_same_world_width_from_any_camera_distance(mitsuba_backend, tmp_path):
-    """The filter is fixed in world units: the shadow edge's 10–90 % width along the floor is the
-    same seen from near and from far (a kernel fixed in pixels would change it by the ratio of the
-    distances, 2×)."""
+    """``filter_size = world`` (the default): the filter is fixed in world units, so the shadow
+    edge's 10–90 % width along the floor is the same seen from near and from far. The source's
+    ``light_distance`` size has no camera term: its filter spans the same pixels from both, so twice
+    the world width from twice the distance."""
     from shadowlab.render.gbuffer import vec_numpy
-    panel = {"name": "L", "kind": "rect", "position": [0.0, 4.0, 0.0], "target": [0.0, 0.0, 0.0],
-             "up": [0.0, 0.0, 1.0], "size": [1.0, 1.0], "power": 100.0, "shadow_map": 1024}
-    shapes = [{"name": "floor", "type": "rectangle", "rotate": [1, 0, 0, -90], "scale": 4.0},
-              {"name": "blocker", "type": "rectangle", "rotate": [1, 0, 0, -90], "translate": [-2.0, 2.0, 0.0],
-               "scale": [2.0, 3.0, 1.0]}]
-    widths = []
+    widths, pixels = {}, {}
     for dist in (3.0, 6.0):
         cam = {"position": [0.0, 1.5, dist], "target": [0.0, 0.0, 0.0], "fov": 40,
                "resolution": [128, 128]}
-        frame = _scene(tmp_path, panel, shapes, camera=cam)
-        v = get("sm_dpsv_soft").render(frame, {}).visibility["L"].numpy()
+        frame = _scene(tmp_path, PANEL, EDGE_SHAPES, camera=cam)
         p = vec_numpy(frame.gbuffer.p).astype(np.float64)
         sel = frame.gbuffer.valid.numpy() & (np.abs(p[:, 1]) < 1e-3) & (np.abs(p[:, 2]) < 0.5)
-        s = sel & (v > 0.2) & (v < 0.8)
-        assert s.sum() > 10
-        slope, _ = np.polyfit(p[s, 0], v[s], 1)
-        widths.append(0.8 / slope)
+        for mode in ("world", "light_distance"):
+            r = get("sm_dpsv_soft").render(frame, {"filter_size": mode})
+            v, px = r.visibility["L"].numpy(), _flat(frame, r.aovs["L.filter_pixels"])
+            s = sel & (v > 0.2) & (v < 0.8)
+            assert s.sum() > 10
+            slope, _ = np.polyfit(p[s, 0], v[s], 1)
+            widths.setdefault(mode, []).append(0.8 / slope)
+            pixels.setdefault(mode, []).append(np.median(px[sel & (px > 0)]))
+    w, ld = widths["world"], widths["light_distance"]
     # the closed form: a straight edge under a square light of side 1 at (4 − 2)/2 · 1 = 1
-    assert abs(widths[0] - widths[1]) < 0.1 * widths[0], widths
-    assert 0.65 < widths[0] < 1.0, widths
+    assert abs(w[0] - w[1]) < 0.1 * w[0], w
+    assert 0.65 < w[0] < 1.0, w
+    assert 1.7 < pixels["world"][0] / pixels["world"][1] < 2.3, pixels
+    assert abs(pixels["light_distance"][0] / pixels["light_distance"][1] - 1.0) < 0.02, pixels
+    assert 1.6 < ld[1] / ld[0] < 2.4, ld
+
+
+def test_soft_filter_size_closed_forms(mitsuba_backend, tmp_path):
+    """The filter's width in visibility-map pixels at receivers 4 m and 3 m from the light (a floor
+    and a platform under the same blocker edge), against its closed form from the G-buffer:
+    ``light_distance`` [Wang 2022, §1.4]: w_p / z̃ × H / (2 tan θ), the penumbra divided by the
+    distance to the light (z̃ = 4 − y under the downward light), so at equal w_p the platform's
+    filter has 4/3 of the floor's pixels; ``world``: w_p / (2 d tan θ_y / H), d the view depth."""
+    from shadowlab.render.gbuffer import vec_numpy
+    from shadowlab.techniques.shadow_map import view_for
+    platform = {"name": "platform", "type": "rectangle", "rotate": [1, 0, 0, -90], "translate": [0.0, 1.0, 1.5],
+                "scale": [2.0, 1.0, 1.0]}
+    cam = {"position": [0.0, 3.0, 6.0], "target": [0.0, 0.5, 0.5], "fov": 40, "resolution": [128, 128]}
+    frame = _scene(tmp_path, PANEL, EDGE_SHAPES + [platform], camera=cam)
+    p = vec_numpy(frame.gbuffer.p).astype(np.float64)
+    z_light = 4.0 - p[:, 1]
+    H = frame.screen.height
+    tan_light = view_for(frame, "L", get("sm_dpsv_soft").resolve({})).proj.faces[0].scale
+    pixel_world = np.maximum(2.0 * frame.screen.depth.numpy() * frame.camera.tan_y / H, 1e-12)
+    floor, plat = np.abs(p[:, 1]) < 1e-3, np.abs(p[:, 1] - 1.0) < 1e-3
+    for mode in ("light_distance", "world"):
+        aovs = get("sm_dpsv_soft").render(frame, {"filter_size": mode}).aovs
+        wp, px = (_flat(frame, aovs[f"L.{k}"]).astype(np.float64) for k in ("penumbra_width", "filter_pixels"))
+        on = px > 0
+        assert (on & floor).sum() > 20 and (on & plat).sum() > 20, mode
+        expect = wp / z_light * H / (2.0 * tan_light) if mode == "light_distance" else wp / pixel_world
+        np.testing.assert_allclose(px[on], expect[on], rtol=0.02, err_msg=mode)
+        per_wp = px / np.maximum(wp, 1e-9)
+        ratio = np.median(per_wp[on & plat]) / np.median(per_wp[on & floor])
+        if mode == "light_distance":
+            assert abs(ratio - 4.0 / 3.0) < 0.03, ratio
 
 
 def test_soft_interval_modes_and_search_taps(planes):
