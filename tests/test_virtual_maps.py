@@ -410,6 +410,8 @@ def test_rect_application_leaves_only_pixels_the_smtmm_did_not_sample(outdoor):
     ("fvsm", {"xi": -1}, r"allowed \[0, 16\]"),
     ("fvsm", {"eta0": 22, "eta1": 17}, r"eta0=22 must be below eta1=17"),
     ("fvsm", {"eta0": 20, "eta1": 20}, r"eta0=20 must be below eta1=20"),
+    ("fvsm", {"warp": "psm"}, "expected one of ortho, lispsm"),
+    ("vtsm", {"lispsm_n": 0.0}, r"allowed \[0.05, 100.0\] × n_opt"),
 ])
 def test_bad_values_exit_2_naming_the_valid_values(tech, values, allowed):
     with pytest.raises(InputError, match=allowed) as e:

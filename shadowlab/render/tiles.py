@@ -109,10 +109,88 @@ def cells_of(x, y, n: int):
     return cx, cy
 
 
-def face_ndc(face, p):
-    """World points (Dr.Jit) -> (x, y, light-space z): NDC of the light camera ``face``. The
-    camera's position, scale and shift enter the kernel opaquely: a focus that follows the view
-    changes them every frame without compiling a new kernel."""
+@dataclass(frozen=True)
+class Warp:
+    """The light-space perspective warp of LiSPSM [Wimmer 2004, §4–5] in the plane of an
+    orthographic map: base NDC (x, y) → warped NDC (X, Y), the square the tiles cut.
+
+    With the perspective's axis e = (ex, ey) (the view direction projected into the light's
+    plane), along = e·(x, y), lat = e⊥·(x, y) (e⊥ = (−ey, ex)), the perspective's centre
+    ``n`` before the body's nearest point ``b_min`` along e and at lateral ``a0`` (the eye's):
+    u = along − b_min, b = n + u, a = lat − a0, and
+
+        X = 2·(a/b − p0)/(p1 − p0) − 1,   Y = 2·t − 1,  t = (n + d)·u / (b·d)
+
+    (t: the perspective depth of a frustum from n to n + d, 0 at the body's near end, 1 at its
+    far end; [p0, p1]: the body's range of a/b). Light rays stay parallel through it (the axis
+    is perpendicular to the light), so a texel's depth is the orthographic map's. The density
+    of texels along e is dY/db = 2n(n + d)/(d·b²): (1 + d/n)² times more at the near end than
+    at the far end; n → ∞ tends to the orthographic (affine) fit of the body. Lengths are in
+    base NDC units (world lengths / the map's half extent)."""
+
+    ex: float
+    ey: float
+    a0: float
+    b_min: float
+    n: float
+    d: float
+    p0: float
+    p1: float
+
+    def __post_init__(self):
+        for k in ("ex", "ey", "a0", "b_min", "n", "d", "p0", "p1"):
+            object.__setattr__(self, k, float(getattr(self, k)))
+        if not (self.n > 0 and self.d > 0 and self.p1 > self.p0):
+            raise ValueError(f"Warp: expected n > 0, d > 0 and p0 < p1, got {self}")
+
+    def _consts(self, kind):
+        if kind is np:
+            return (self.ex, self.ey, self.a0, self.b_min, self.n, self.d, self.p0, self.p1)
+        return _opaque(self.ex, self.ey, self.a0, self.b_min, self.n, self.d, self.p0, self.p1, kind=kind)
+
+    def apply(self, x, y):
+        """Base NDC -> (X, Y) (numpy or Dr.Jit); points at or behind the centre (b ≤ 0) map
+        outside the square (X = Y = 4)."""
+        dj = isinstance(x, dr.ArrayBase)
+        ex, ey, a0, bmin, n, d, p0, p1 = self._consts(type(x) if dj else np)
+        u = ex * x + ey * y - bmin
+        b = n + u
+        a = -ey * x + ex * y - a0
+        safe = dr.select(b > 0, b, 1.0) if dj else np.where(b > 0, b, 1.0)
+        X = 2.0 * (a / safe - p0) / (p1 - p0) - 1.0
+        Y = 2.0 * ((n + d) / d) * (u / safe) - 1.0
+        if dj:
+            return dr.select(b > 0, X, 4.0), dr.select(b > 0, Y, 4.0)
+        return np.where(b > 0, X, 4.0), np.where(b > 0, Y, 4.0)
+
+    def _ab(self, X, Y, c):
+        ex, ey, a0, bmin, n, d, p0, p1 = c
+        t = 0.5 * (Y + 1.0)
+        b = n * (n + d) / ((n + d) - t * d)
+        p = p0 + 0.5 * (X + 1.0) * (p1 - p0)
+        return p, b, c
+
+    def invert(self, X, Y):
+        """Warped NDC -> base NDC (x, y) (numpy or Dr.Jit, any float type)."""
+        dj = isinstance(X, dr.ArrayBase)
+        p, b, (ex, ey, a0, bmin, n, d, p0, p1) = self._ab(X, Y, self._consts(type(X) if dj else np))
+        along, lat = b - n + bmin, p * b + a0
+        return ex * along - ey * lat, ey * along + ex * lat
+
+    def jacobian(self, X, Y):
+        """∂(x, y)/∂(X, Y) at warped NDC (X, Y): (x_X, y_X, x_Y, y_Y), base NDC per warped NDC."""
+        dj = isinstance(X, dr.ArrayBase)
+        p, b, (ex, ey, a0, bmin, n, d, p0, p1) = self._ab(X, Y, self._consts(type(X) if dj else np))
+        b_Y = b * b * d / (2.0 * n * (n + d))
+        a_X, a_Y = 0.5 * b * (p1 - p0), p * b_Y
+        return -ey * a_X, ex * a_X, ex * b_Y - ey * a_Y, ey * b_Y + ex * a_Y
+
+
+def face_ndc(face, p, warp: Warp | None = None):
+    """World points (Dr.Jit) -> (x, y, light-space z): NDC of the light camera ``face``, (x, y)
+    through ``warp`` where given. The camera's position, scale and shift enter the kernel
+    opaquely: a focus that follows the view changes them every frame without compiling a new
+    kernel."""
     o = _opaque(*face.origin)
     s, sx, sy = _opaque(face.scale, *face.shift)
     rel = p - mi.Point3f(*o)
@@ -122,7 +200,10 @@ def face_ndc(face, p):
     else:
         inv = dr.rcp(dr.maximum(qz, 1e-12)) / s
         x, y = qx * inv, qy * inv
-    return x - sx, y - sy, qz
+    x, y = x - sx, y - sy
+    if warp is not None:
+        x, y = warp.apply(x, y)
+    return x, y, qz
 
 
 @dataclass
@@ -141,6 +222,7 @@ class TiledView:
     hit_texels: int
     point_tile: object = None  # mi.UInt32 per point (see bind)
     point_has: object = None   # mi.Bool per point: some tile holds it
+    warp: Warp | None = None   # the tiles cut the warped square (LiSPSM), not the base map's
 
     def _tab(self, name):
         cache = self.__dict__.setdefault("_tabs", {})
@@ -158,8 +240,8 @@ class TiledView:
         return cache[name]
 
     def ndc(self, p):
-        """World points -> (x, y, light-space z) in the base map's NDC (Dr.Jit)."""
-        return face_ndc(self.proj.faces[0], p)
+        """World points -> (x, y, light-space z) in the base map's NDC, warped (Dr.Jit)."""
+        return face_ndc(self.proj.faces[0], p, self.warp)
 
     def bind(self, tile) -> "TiledView":
         """This view bound to the tile each point reads (``tile``: Int32 per point, −1 none, as
@@ -170,7 +252,8 @@ class TiledView:
     def lookup(self, p):
         """:meth:`LightView.lookup` for the points :meth:`bind` bound: ``face`` is the point's
         tile, ``u``, ``v`` its continuous texel coordinates in that tile, ``inside`` False where no
-        tile holds the point, ``texel`` the world size of the tile's larger texel side."""
+        tile holds the point, ``texel`` the world size of the tile's larger texel side (with a
+        warp, of the texel at the point: the warp's Jacobian times the texel's sides)."""
         if self.point_tile is None:
             raise ValueError("TiledView.lookup needs the points' tiles: call bind(assign_tiles(...)) first")
         f0 = self.proj.faces[0]
@@ -180,6 +263,10 @@ class TiledView:
         u = (x - g("x0")) * g("sx")
         v = (g("y1") - y) * g("sy")
         texel = g("texel") if f0.ortho else g("texel") * qz
+        if self.warp is not None:
+            xX, yX, xY, yY = self.warp.jacobian(x, y)
+            wx, wy = dr.rcp(g("sx")), dr.rcp(g("sy"))      # the tile's texel sides in warped NDC
+            texel = dr.maximum(dr.sqrt(xX * xX + yX * yX) * wx, dr.sqrt(xY * xY + yY * yY) * wy) * f0.scale
         near, far = _opaque(f0.near, f0.far)
         inside = self.point_has & (qz > near) & (qz < far) & (dr.abs(x) <= 1.0) & (dr.abs(y) <= 1.0)
         d = f0.ndc_depth(qz if f0.ortho else dr.maximum(qz, 1e-12))
@@ -196,7 +283,7 @@ class TiledView:
         return dr.gather(mi.Float, getattr(self, name), idx)
 
 
-def assign_tiles(face, tiles: Tiles, p, px=None, py=None, cells=None, n: int = 1):
+def assign_tiles(face, tiles: Tiles, p, px=None, py=None, cells=None, n: int = 1, warp: Warp | None = None):
     """The tile each point reads (Int32, −1 none): the last tile (in application order) whose
     texture holds the point's NDC position in the map ``face`` and, where tiles have screen
     rectangles, whose rectangle holds the point's pixel (``px``, ``py``: continuous pixel
@@ -205,8 +292,8 @@ def assign_tiles(face, tiles: Tiles, p, px=None, py=None, cells=None, n: int = 1
     ``cells``: (n, n) int table of the tile that holds each cell of an n×n grid over the NDC
     square (−1 none); the point's cell and its 8 neighbours' tiles are the candidates (a tile's
     overlap reaches at most into the adjacent cells). None: every tile is tried (a loop over
-    the tiles; for tests and small tile counts)."""
-    x, y, _ = face_ndc(face, p)
+    the tiles; for tests and small tile counts). ``warp``: the tiles cut the warped square."""
+    x, y, _ = face_ndc(face, p, warp)
     T = len(tiles)
     if T == 0:
         return dr.full(mi.Int32, -1, dr.width(x))
@@ -251,15 +338,21 @@ def tile_groups(tiles: Tiles, chunk: int | None = None) -> list:
     return out
 
 
-def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backface: bool = False) -> TiledView:
-    """Cast one ray per texel of every tile (one wavefront per :func:`chunk_texels` texels)."""
+def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backface: bool = False,
+                 warp: Warp | None = None) -> TiledView:
+    """Cast one ray per texel of every tile (one wavefront per :func:`chunk_texels` texels).
+    ``warp`` (an orthographic ``base`` only): the tiles cut the warped square; a texel's ray
+    starts at its centre's inverse warp, and its slope is the depth's per warped texel."""
     if len(base.faces) != 1:
         raise InputError(f"light {light.name!r}: a virtual tiled map needs a one-face light camera "
                          f"(directional or spot), not a {len(base.faces)}-face map")
     f0 = base.faces[0]
+    if warp is not None and not f0.ortho:
+        raise InputError(f"light {light.name!r}: the LiSPSM warp is built for a directional light's orthographic "
+                         "map; use warp = ortho for this light")
     T, total = len(tiles), tiles.texels
     if T == 0:
-        return TiledView(light, base, int(bits), bool(backface), tiles, mi.Float(), mi.Float(), 0)
+        return TiledView(light, base, int(bits), bool(backface), tiles, mi.Float(), mi.Float(), 0, warp=warp)
     off = tiles.offsets
     off_dr = mi.UInt32(np.asarray(off, np.uint32))
     tab = lambda a: mi.Float(np.asarray(a, np.float32))  # noqa: E731
@@ -292,8 +385,15 @@ def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backfa
         # texel centres and ray origins in double precision, rounded once: the same world texel gets the
         # same float32 ray wherever the (snapped) light camera sits, so a still texel grid casts the same rays
         F = mi.Float64
-        xb = dr.gather(F, X0, t) + (F(col) + 0.5) * dr.gather(F, DX, t) + shx
-        yb = dr.gather(F, Y1, t) - (F(row) + 0.5) * dr.gather(F, DY, t) + shy
+        xb = dr.gather(F, X0, t) + (F(col) + 0.5) * dr.gather(F, DX, t)
+        yb = dr.gather(F, Y1, t) - (F(row) + 0.5) * dr.gather(F, DY, t)
+        tx, ty = dr.gather(mi.Float, TX, t), dr.gather(mi.Float, TY, t)
+        jac = None
+        if warp is not None:
+            Xc, Yc = xb, yb
+            xb, yb = warp.invert(Xc, Yc)
+            jac = [mi.Float(j) for j in warp.jacobian(Xc, Yc)]
+        xb, yb = xb + shx, yb + shy
         xs, ys = xb * scale64, yb * scale64
         Rr = f0.R
         if f0.ortho:
@@ -310,8 +410,11 @@ def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backfa
         rel = [mi.Float64(si.p[c]) - org64[c] for c in range(3)]          # light space in double, as light_view
         q = [mi.Float(rel[0] * Rr[r][0] + rel[1] * Rr[r][1] + rel[2] * Rr[r][2]) for r in range(3)]
         nl = [dr.dot(mi.Vector3f(si.n), R[r]) for r in range(3)]
-        tx, ty = dr.gather(mi.Float, TX, t), dr.gather(mi.Float, TY, t)
-        m = dr.maximum(dr.abs(nl[0]) * tx, dr.abs(nl[1]) * ty)
+        if jac is None:
+            m = dr.maximum(dr.abs(nl[0]) * tx, dr.abs(nl[1]) * ty)
+        else:   # the caster plane's depth slope per warped texel: ∇d along the warp's columns
+            xX, yX, xY, yY = jac
+            m = dr.maximum(dr.abs(nl[0] * xX + nl[1] * yX) * tx, dr.abs(nl[0] * xY + nl[1] * yY) * ty)
         if f0.ortho:
             s = m / (dr.abs(nl[2]) * (f_ - n_))
         else:
@@ -336,4 +439,4 @@ def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backfa
             [mi.Float(np.concatenate([a.numpy() for a in depth]))],
             [mi.Float(np.concatenate([a.numpy() for a in slope]))],
         )
-    return TiledView(light, base, int(bits), bool(backface), tiles, depth[0], slope[0], hits)
+    return TiledView(light, base, int(bits), bool(backface), tiles, depth[0], slope[0], hits, warp=warp)

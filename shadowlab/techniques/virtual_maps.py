@@ -1,5 +1,5 @@
 """Virtual shadow maps: the brute-force virtual tiled shadow map (``vtsm``) and fitted virtual
-shadow maps (``fvsm``) [Giegl 2007, §3–4].
+shadow maps (``fvsm``) [Giegl 2007, §3–4], with orthographic or LiSPSM focusing [Wimmer 2004].
 
 Both cover one *virtual* shadow map of a directional light, the light's orthographic map focused
 on the visible part of the view (``focus`` [Giegl 2007, §4.8]: ``visible``, the light-space square
@@ -78,7 +78,21 @@ AOVs: ``tile`` (the tile a pixel reads, −1 none), ``demand_x``, ``demand_y`` (
 SMTG cell, for the grid overlay); −1 where there is no surface or it lies outside the map. Every parameter steps the
 result (none is differentiable).
 
-Not done: LiSPSM focusing; semitransparent receivers ([Giegl 2007, §4.11] shadows them with one ordinary map):
+**LiSPSM** (``warp`` = ``lispsm``; [Giegl 2007, §5] ran every result with it, [Wimmer 2004, §4–5]):
+the focused orthographic map's plane is warped by a perspective whose axis is the view direction
+projected into the light's plane (:class:`~shadowlab.render.tiles.Warp`, :func:`lispsm_warp`): its
+centre sits n = ``lispsm_n`` · n_opt before the focused body's nearest point, in line with the eye,
+n_opt = (z_n + √(z_n·z_f))/sin γ (γ: the angle between the view and the light; z_n … z_f: the
+visible points' view depths for ``focus`` = ``visible``, the shadowed range's for the others),
+and the warped body's bounding box becomes the square. The tiles, the demand (step 1's
+footprints), the tile each point reads, its texel coordinates and texel size (the normal offset)
+and the casters' slope bias (the depth's slope per warped texel) are all taken in the warped
+square; depths stay the orthographic map's (the warp keeps light rays parallel). The body is
+the visible points (``visible``) or the base map's square (the other foci); ``snap`` steadies
+the base map only (the warp follows the view). Stats: ``lispsm`` = n and the body's depth d in
+metres and the near/far texel density ratio (1 + d/n)².
+
+Not done: semitransparent receivers ([Giegl 2007, §4.11] shadows them with one ordinary map):
 no built-in scene has them.
 
 >>> demand_level(np.array([0.5, 0.25, 0.3, 1e-4])).tolist()
@@ -98,7 +112,7 @@ from ..errors import InputError
 from ..io.png import NO_DATA
 from ..render.gbuffer import vec_numpy
 from ..render.lightview import FrustumSlice, LightSquare, SceneSphere, light_frame, projection
-from ..render.tiles import Tiles, assign_tiles, cells_of, face_ndc, render_tiles, tile_groups
+from ..render.tiles import Tiles, Warp, assign_tiles, cells_of, face_ndc, render_tiles, tile_groups
 from .base import LightResult, Panel, Param, Technique, get, needs_mitsuba_geometry, param_table_markdown, register
 from .cascades import CSM_PARAMS, shadow_range
 from .shadow_map import (BIAS_PARAMS, Points, SubFrame, depth_test, map_settings, opaque_bias, receiver,
@@ -112,6 +126,7 @@ TILE_MODES = ("subrect", "pow2", "exact")
 #: texels across the coarse tile of ``uncovered`` = ``fallback`` (at most t_max)
 COARSE = 128
 FOCI = ("visible", "sphere", "box", "scene")
+WARPS = ("ortho", "lispsm")
 _CSM = {p.name: p for p in CSM_PARAMS}
 
 
@@ -126,6 +141,30 @@ def _focus_params(default: str) -> tuple:
             doc="the virtual map's light camera: the light-space square around the points the view sees (visible), "
             "the view frustum between the shadowed range's depths (its bounding sphere or light-space box, "
             "csm's fits), or the whole scene",
+        ),
+        Param(
+            "warp",
+            "ortho",
+            "choice",
+            choices=WARPS,
+            source="[Giegl 2007, §5], [Wimmer 2004, §4–5]",
+            doc="the virtual map's parameterisation: the focused orthographic map (ortho), or LiSPSM's perspective "
+            "warp of it along the view direction projected into the light's plane (lispsm, what [Giegl 2007] ran "
+            "every result with): more texels near the viewer, through the lookup, the tiles, the demand and the slope "
+            "bias",
+        ),
+        Param(
+            "lispsm_n",
+            1.0,
+            "float",
+            0.05,
+            100.0,
+            "× n_opt",
+            False,
+            source="[Wimmer 2004, §5]",
+            doc="LiSPSM's n (the perspective centre's distance before the focused body) as a multiple of "
+            "n_opt = (z_n + √(z_n·z_f))/sin γ; smaller = a stronger warp (more texels near the viewer), larger = "
+            "nearer the orthographic map (warp = lispsm only)",
         ),
         replace(
             _CSM["snap"],
@@ -244,11 +283,12 @@ def demand_level(delta):
     return np.clip(np.where(d > 0, L, LEVEL_MAX), 0, LEVEL_MAX).astype(np.int64)
 
 
-def footprint(screen, face):
+def footprint(screen, face, warp: Warp | None = None):
     """Per point (Dr.Jit, G-buffer order): the NDC half extents (Δ_x, Δ_y) of the pixel's
-    footprint in the map ``face`` (see the module docstring, step 1) and its NDC (x, y)."""
+    footprint in the map ``face`` (see the module docstring, step 1) and its NDC (x, y), both
+    in the warped square where ``warp`` is given."""
     P = screen.position
-    x, y, _ = face_ndc(face, P)
+    x, y, _ = face_ndc(face, P, warp)
     axes = []
     for dx, dy, n in ((1, 0, screen.width), (0, 1, screen.height)):
         coord = screen.x if dx else screen.y
@@ -265,8 +305,8 @@ def footprint(screen, face):
         w = z * (2.0 * (cam.tan_x if dx else cam.tan_y) / n)
         e = dr.select(vm | vp, e, mi.Vector3f(*[float(c) for c in axis]) * w)
         axes.append(e)
-    xe, ye, _ = face_ndc(face, P + axes[0])
-    xf, yf, _ = face_ndc(face, P + axes[1])
+    xe, ye, _ = face_ndc(face, P + axes[0], warp)
+    xf, yf, _ = face_ndc(face, P + axes[1], warp)
     ax, ay, bx, by = xe - x, ye - y, xf - x, yf - y
     return 0.5 * (dr.abs(ax) + dr.abs(bx)), 0.5 * (dr.abs(ay) + dr.abs(by)), x, y
 
@@ -526,6 +566,47 @@ def visible_square(frame, light, res: int, snap: bool) -> LightSquare:
     return LightSquare(cx, cy, half, float(hi[2]) + 1e-3 * frame.scene.radius)
 
 
+def base_ndc(face, P) -> np.ndarray:
+    """World points (numpy (N, 3)) -> (N, 2) NDC (x, y) of the orthographic ``face``."""
+    q = (np.asarray(P, np.float64).reshape(-1, 3) - np.asarray(face.origin)) @ np.asarray(face.R)[:2].T
+    return q / face.scale - np.asarray(face.shift)
+
+
+def n_opt(z_near: float, z_far: float, sin_gamma: float) -> float:
+    """LiSPSM's n_opt = (z_n + √(z_n·z_f))/sin γ [Wimmer 2004, §5]: at γ = 90° the n whose
+    warp spreads the aliasing error evenly over the view depths z_n … z_f; as the light turns
+    toward the view direction (γ → 0) n grows without bound and the warp becomes orthographic."""
+    return (z_near + math.sqrt(z_near * z_far)) / sin_gamma
+
+
+def lispsm_warp(face, camera, body, z_near: float, z_far: float, n_scale: float = 1.0) -> Warp | None:
+    """The LiSPSM warp [Wimmer 2004, §4–5] of the orthographic map ``face`` for a view from
+    ``camera`` over ``body`` ((N, 2) base NDC points that must stay in the square): the axis is
+    the view direction projected into the light's plane, the centre sits n = ``n_scale``·n_opt
+    (:func:`n_opt` of the view depths z_n … z_f and the angle γ between view and light) before
+    the body's nearest point, in line with the eye, and the warped body's bounding box is the
+    new square. None where the view looks along the light (sin γ = 0: nothing to warp)."""
+    R = np.asarray(face.R, np.float64)
+    v = np.asarray(camera.forward, np.float64)
+    e = np.array([v @ R[0], v @ R[1]])
+    sin_g = float(np.linalg.norm(e))          # |v × l|: R's rows are orthonormal
+    body = np.asarray(body, np.float64).reshape(-1, 2)
+    if sin_g < 1e-9 or not len(body):
+        return None
+    e /= sin_g
+    n = float(n_scale) * n_opt(float(z_near), float(z_far), sin_g) / face.scale
+    along, lat = body @ e, body @ np.array([-e[1], e[0]])
+    eye = base_ndc(face, camera.position)[0]
+    a0 = float(eye @ np.array([-e[1], e[0]]))
+    d = float(along.max() - along.min())
+    pad = 1e-4 * max(d, 1e-6)                   # the body's extremes land inside the square, not on its edge
+    b_min, d = float(along.min()) - pad, d + 2.0 * pad
+    p = (lat - a0) / (n + along - b_min)
+    p0, p1 = float(p.min()), float(p.max())
+    pp = 1e-4 * max(p1 - p0, 1e-9 * max(abs(p0), abs(p1), 1e-30))
+    return Warp(e[0], e[1], a0, b_min, n, d, p0 - pp, p1 + pp)
+
+
 # ----------------------------------------------------------------------------------------------
 # the techniques
 
@@ -694,7 +775,28 @@ class VirtualMap(Technique):
         return projection(light, frame.scene, res, fit)
 
     @staticmethod
-    def cover(base, tiles, tile, gb, cells, values) -> tuple:
+    def warp(frame, values, base) -> Warp | None:
+        """``warp`` = ``lispsm``: :func:`lispsm_warp` of the base map for the frame's own view,
+        its body the visible points (``focus`` = ``visible``, their view depths z_n … z_f) or the
+        base map's square (the other foci, the shadowed range's depths); None for ``ortho``."""
+        if values.get("warp", "ortho") != "lispsm":
+            return None
+        f0, cam = base.faces[0], frame.camera
+        if values["focus"] == "visible":
+            gb = frame.own_gbuffer
+            P = vec_numpy(gb.p)[np.asarray(gb.valid.numpy(), bool).reshape(-1)]
+            body = base_ndc(f0, P)
+            body = body[np.all(np.abs(body) <= 1.0, axis=1)]
+            z = cam.view_depth(P)
+            zn, zf = (max(float(z.min()), cam.near), float(z.max())) if len(P) else shadow_range(cam, frame.scene,
+                                                                                                 values)
+        else:
+            body = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+            zn, zf = shadow_range(cam, frame.scene, values)
+        return lispsm_warp(f0, cam, body, zn, max(zf, zn), float(values["lispsm_n"]))
+
+    @staticmethod
+    def cover(base, tiles, tile, gb, cells, values, warp=None) -> tuple:
         """``uncovered`` = ``fallback``: a point no tile writes (outside every screen rectangle
         that would hold it, or in a cell no tile covers) reads the last tile whose texture holds
         it, as if that tile's rectangle reached it; a point no tile's texture holds reads one
@@ -702,9 +804,9 @@ class VirtualMap(Technique):
         and written only where nothing else is. Returns (tiles, tile per point)."""
         f0 = base.faces[0]
         if tiles.screen is not None:
-            anyt = assign_tiles(f0, tiles, gb.p, None, None, cells, int(values["grid"]))
+            anyt = assign_tiles(f0, tiles, gb.p, None, None, cells, int(values["grid"]), warp)
             tile = dr.select(tile < 0, anyt, tile)
-        x, y, _ = face_ndc(f0, gb.p)
+        x, y, _ = face_ndc(f0, gb.p, warp)
         left = gb.valid & (tile < 0) & (dr.abs(x) <= 1.0) & (dr.abs(y) <= 1.0)
         if not dr.any(left):
             return tiles, tile
@@ -716,14 +818,16 @@ class VirtualMap(Technique):
         dr.eval(tile)
         return more, tile
 
-    def plan(self, frame, light, values, base) -> tuple:  # pragma: no cover - interface
-        """(Tiles, cells table or None, stats, per-point AOVs): the tiles to render."""
+    def plan(self, frame, light, values, base, warp) -> tuple:  # pragma: no cover - interface
+        """(Tiles, cells table or None, stats, per-point AOVs): the tiles of the (``warp`` ed)
+        square to render."""
         raise NotImplementedError
 
     def render_light(self, frame, light, values, ctx):
         frame.require_mitsuba_geometry()
         base = self.base(frame, light, values)
-        tiles, cells, stats, aovs = self.plan(frame, light, values, base)
+        warp = self.warp(frame, values, base)
+        tiles, cells, stats, aovs = self.plan(frame, light, values, base, warp)
         _, bits = map_settings(frame, light.name, values)
         gb = frame.gbuffer
         npts = dr.width(gb.valid)
@@ -731,10 +835,10 @@ class VirtualMap(Technique):
             px, py = mi.Float(frame.screen.x) + 0.5, mi.Float(frame.screen.y) + 0.5
         else:                                 # the points where this frame's camera sees them
             px, py, _ = frame.own_screen.project(gb.p)
-        tile = assign_tiles(base.faces[0], tiles, gb.p, px, py, cells, int(values["grid"]))
+        tile = assign_tiles(base.faces[0], tiles, gb.p, px, py, cells, int(values["grid"]), warp)
         if values.get("uncovered") == "fallback":
             n_before = len(tiles)
-            tiles, tile = self.cover(base, tiles, tile, gb, cells, values)
+            tiles, tile = self.cover(base, tiles, tile, gb, cells, values, warp)
             if len(tiles) > n_before and "memory_modes" in stats:   # the coarse tile's texture, in every mode
                 extra = 4 * int(tiles.nx[-1] * tiles.ny[-1])
                 stats = {**stats, "memory_bytes": stats["memory_bytes"] + extra,
@@ -744,7 +848,7 @@ class VirtualMap(Technique):
         hits = 0
         # tiles are applied one after another: a wavefront of tiles at a time, then its texels are freed
         for lo, hi in tile_groups(tiles):
-            tv = render_tiles(frame.scene, light, base, tiles.subset(lo, hi), bits, bool(values["backface"]))
+            tv = render_tiles(frame.scene, light, base, tiles.subset(lo, hi), bits, bool(values["backface"]), warp)
             tv = tv.bind(dr.select((tile >= lo) & (tile < hi), tile - lo, -1))
             rec = receiver(pts, tv, ctx.bias)
             test = depth_test(tv, rec, texel_index(rec["u"]), texel_index(rec["v"]), ctx.bias)
@@ -767,10 +871,14 @@ class VirtualMap(Technique):
         f0 = base.faces[0]
         entry = {"resolution": int(max(t.nx.max(initial=0), t.ny.max(initial=0))), "depth_bits": int(bits), "faces": 1,
                  "tiles": len(t), "texels": t.texels, "near": float(f0.near), "far": float(f0.far),
-                 "projection": "orthographic", "virtual_extent": 2.0 * float(f0.scale)}
+                 "projection": "orthographic", "virtual_extent": 2.0 * float(f0.scale),
+                 "warp": "lispsm" if warp is not None else "ortho"}
         nvalid = max(int(dr.count(gb.valid)[0]), 1)
         stats = {**stats, "tiles": len(t), "texels": t.texels, "hit_texels": hits,
                  "unshadowed_fraction": int(dr.count(gb.valid & ~active)[0]) / nvalid}
+        if warp is not None:   # LiSPSM's n in metres and the near/far texel density ratio (1 + d/n)²
+            stats["lispsm"] = {"n": warp.n * float(f0.scale), "depth": warp.d * float(f0.scale),
+                               "density_ratio": (1.0 + warp.d / warp.n) ** 2}
         return LightResult(v, aovs, stats=stats, maps=[entry])
 
     def summarise(self, frame, values, ctx, lights):
@@ -787,7 +895,7 @@ class VTSM(VirtualMap):
                "and applied by deferred shadowing (the brute-force baseline of fitted virtual shadow maps)")
     params = VTSM_PARAMS + TILE_BIAS_PARAMS
 
-    def plan(self, frame, light, values, base):
+    def plan(self, frame, light, values, base, warp):
         n, t = int(values["grid"]), int(values["t_max"])
         iy, ix = np.divmod(np.arange(n * n), n)
         w = 2.0 / n
@@ -813,12 +921,12 @@ class FVSM(VirtualMap):
                "needs, ξ trading quality for speed down to one ordinary focused map")
     params = FVSM_PARAMS + TILE_BIAS_PARAMS
 
-    def demand(self, frame, base, values) -> dict:
+    def demand(self, frame, base, values, warp=None) -> dict:
         """The per-point demand (Dr.Jit, at :attr:`~shadowlab.render.frame.FrameContext.own_screen`'s
         points) and the SMTMM, SMTG, pyramid and tiles of one light."""
         scr = frame.own_screen
         f0 = base.faces[0]
-        dx, dy, x, y = footprint(scr, f0)
+        dx, dy, x, y = footprint(scr, f0, warp)
         lx, ly = demand_level(dx), demand_level(dy)
         dr.eval(lx, ly, x, y)
         n = int(values["grid"])
@@ -830,8 +938,8 @@ class FVSM(VirtualMap):
         return {"lx": lx, "ly": ly, "x": x, "y": y, "smtmm": sm, "grid": g, "dropped": dropped, "pyramid": pyr,
                 "leaves": lv}
 
-    def plan(self, frame, light, values, base):
-        d = self.demand(frame, base, values)
+    def plan(self, frame, light, values, base, warp):
+        d = self.demand(frame, base, values, warp)
         lv, n, scr = d["leaves"], int(values["grid"]), frame.screen
         o = int(values["overlap"])
         rect_scale = d["smtmm"].scale if values["apply"] == "rect" else None
