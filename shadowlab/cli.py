@@ -635,7 +635,8 @@ def bench(
         "scaling (the Dask executor on 1, 2, 4, 8 workers, scaling.md; not in the full run), truth (the ground "
         "truth's throughput against raw ray_test, truth.md) or frames (every technique's new and warm frame split "
         "into G-buffer, light views, technique and host time, its kernels and first host sync, beside raw ray_test; "
-        "frames.md; not in the full run).",
+        "frames.md; not in the full run) or transfer (shadowlab's fitted pcf and hard transferred to three.js, "
+        "beside the engine's defaults and its own fit; transfer.md; not in the full run: it needs the engines).",
     ),
     size: Optional[str] = typer.Option(None, "--size", help="WIDTHxHEIGHT of --only frames (default 1920x1080; "
                                        "e.g. 640x360 on a CPU)."),

@@ -39,6 +39,7 @@ BENCH_PARTS = {
     "ssss": "Layered screen-space soft shadows",
     "scaling": "Scaling on Dask",
     "frames": "Technique frames",
+    "transfer": "Fit in shadowlab, paste into the engine",
 }
 
 _ORPHAN = "---\norphan: true\n---\n\n"

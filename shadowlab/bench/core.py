@@ -58,6 +58,7 @@ from .frames import run as frames_bench
 from .fit import measure as bench_fit
 from .sdf import run as sdf_bench
 from .ssss import run as ssss_bench
+from .transfer import run as transfer_bench
 from .rays import raw_ray_test
 from .record import write_record
 from .timing import machine_text, timed
@@ -389,7 +390,7 @@ def _markdown(res: dict) -> str:
 
 
 #: the parts ``--only`` runs alone
-ONLY = ("sdf", "cascades", "virtual", "dpsv", "ssss", "scaling", "truth", "frames")
+ONLY = ("sdf", "cascades", "virtual", "dpsv", "ssss", "scaling", "truth", "frames", "transfer")
 
 
 def run(out: Path, quick: bool = False, only: str | None = None, size=None) -> Path:
@@ -411,7 +412,7 @@ def run(out: Path, quick: bool = False, only: str | None = None, size=None) -> P
         return _recorded(Path(out), "frames", frames_bench(Path(out), quick=quick, size=size))
     out = Path(out)
     parts = {"sdf": sdf_bench, "cascades": cascades_bench, "virtual": virtual_bench, "dpsv": dpsv_bench,
-             "ssss": ssss_bench, "scaling": scaling_bench}
+             "ssss": ssss_bench, "scaling": scaling_bench, "transfer": transfer_bench}
     if only in parts:
         return _recorded(out, only, parts[only](out, quick=quick))
     backend.init()
