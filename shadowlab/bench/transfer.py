@@ -8,7 +8,9 @@ For each case (scene, shadowlab technique, engine technique), in one run:
 2. its fitted values are transferred onto the engine (:mod:`shadowlab.techniques.transfer`: per
    receiver point in world units through the engine's own shadow camera, the median);
 3. the engine's error (its own fit loss, :func:`~shadowlab.fit.run.default_loss`) is measured at
-   its defaults, with the transferred values, and after its own fit with the same budget.
+   its defaults, with the transferred values, and after its own fit with the same budget;
+4. parity (:func:`shadowlab.fit.transfer.parity`): shadowlab's image against the engine's with the
+   transferred values, away from the truth's penumbra and inside it.
 
 The engine settings a case keeps (``ENGINE_SETS``) are those a user of that scene sets first: the
 sun's orthographic frustum on ``street`` (three.js's ±5 m default shadows nothing in a 400 m scene;
@@ -58,6 +60,10 @@ def _fmt(values: dict) -> str:
     return ", ".join(f"`{k}` {v:.4g}" if isinstance(v, float) else f"`{k}` {v}" for k, v in values.items())
 
 
+def _parity(p: dict) -> str:
+    return "—" if not p["pixels"] else f"{p['mean_abs']:.3f} ({100 * p['within_0.05']:.0f} %)"
+
+
 def markdown(res: dict) -> str:
     lines = ["# Fit in shadowlab, paste into the engine", "",
              f"Machine: {machine_text(res['machine'])}. Date: {res['date']}. Engines: three.js "
@@ -66,14 +72,19 @@ def markdown(res: dict) -> str:
              f"reference; every fit: {res['budget']['evals']} evaluations per parameter, "
              f"{res['budget']['rounds']} round.", "",
              "| scene | shadowlab fit | its loss | engine | engine at defaults | transferred values | "
-             "engine with them | engine's own fit | engine after it |",
-             "|---|---|---:|---|---:|---|---:|---|---:|"]
+             "engine with them | engine's own fit | engine after it | parity: interior | parity: penumbra |",
+             "|---|---|---:|---|---:|---|---:|---|---:|---:|---:|"]
     for r in res["cases"]:
         kept = f" (kept: {_fmt(r['engine_sets'])})" if r["engine_sets"] else ""
         lines.append(f"| {r['scene']} | `{r['source']}`: {_fmt(r['source_fit']['values'])} | {r['source_loss']:.3f} "
                      f"| `{r['target']}`{kept} | {r['engine_loss_defaults']:.3f} | {_fmt(r['transferred'])} | "
-                     f"{r['engine_loss_transferred']:.3f} | {_fmt(r['engine_fit'])} | {r['engine_loss_fit']:.3f} |")
-    lines += ["", "How the values map (per receiver point through the engine's own shadow camera, then the median "
+                     f"{r['engine_loss_transferred']:.3f} | {_fmt(r['engine_fit'])} | {r['engine_loss_fit']:.3f} | "
+                     f"{_parity(r['parity']['interior'])} | {_parity(r['parity']['penumbra'])} |")
+    lines += ["", "Parity: shadowlab's technique at its fitted values against the engine with the transferred ones, "
+              "pooled over the lights at the pixels each reaches: mean absolute difference of the visibilities and, "
+              "in brackets, the share of pixels within 0.05; interior = the truth's umbra and lit pixels more than 2 "
+              "pixels from its penumbra (bias, acne and precision), penumbra = 0.02 < V < 0.98 (the filters).",
+              "", "How the values map (per receiver point through the engine's own shadow camera, then the median "
               "over the points): [engines](../engines.md#transfer-fit-in-shadowlab-paste-into-the-engine)."]
     return "\n".join(lines) + "\n"
 

@@ -13,6 +13,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+from scipy import ndimage
+
 from ..errors import InputError
 from ..reference import store
 from ..techniques import base as tbase
@@ -55,6 +58,7 @@ def transfer(scene: str, source: str, target: str, *, sets=None, preset=None, lo
            "engine_loss_defaults": obj_e.report(obj_e.value(eng_base)),
            "transferred": mapped["values"], "spread": mapped["spread"], "points": mapped["points"],
            "engine_loss_transferred": obj_e.report(obj_e.value(eng_t))}
+    rec["parity"] = parity(frame, truth, src.render(frame, src_values), tgt.render(frame, eng_t))
     if fit_engine:
         own = execute(plan(target, frame, loss=loss, sets=sets_by.get(target, {})), frame, truth, budget or Budget())
         rec["engine_fit"] = {k: v["fitted"] for k, v in own["params"].items()}
@@ -67,6 +71,43 @@ def transfer(scene: str, source: str, target: str, *, sets=None, preset=None, lo
                force=force, protected=protected)
         rec["preset"] = str(save_preset)
     return rec
+
+
+def parity(frame, truth, a, b, *, margin: int = 2) -> dict:
+    """How far two renders' visibilities differ (``a`` shadowlab's, ``b`` the engine's), pooled over
+    the lights at the pixels the light reaches: ``interior`` (the truth's umbra and lit pixels more
+    than ``margin`` pixels from its penumbra 0.02 < V < 0.98: bias and precision) and ``penumbra``
+    (the filter): mean |a − b| and the fraction within 0.05 of each other.
+
+    >>> class F:
+    ...     lights = [type("L", (), {"name": "k"})]
+    ...     image = staticmethod(lambda x: x)
+    ...     lit_mask = staticmethod(lambda n: np.ones((1, 6), bool))
+    >>> class T:
+    ...     mask = np.ones((1, 6), bool)
+    ...     lights = {"k": type("V", (), {"V": np.array([[0.0, 0.0, 0.0, 0.5, 1.0, 1.0]])})}
+    >>> res = lambda v: type("R", (), {"visibility": {"k": np.array([v])}})   # noqa: E731
+    >>> p = parity(F, T, res([0.0, 0.0, 0.0, 0.5, 1.0, 1.0]), res([0.0, 0.0, 1.0, 0.2, 1.0, 1.0]), margin=0)
+    >>> p["interior"], p["penumbra"]
+    ({'pixels': 5, 'mean_abs': 0.2, 'within_0.05': 0.8}, {'pixels': 1, 'mean_abs': 0.3, 'within_0.05': 0.0})
+    """
+    diff, regions = {"interior": [], "penumbra": []}, {}
+    for light in frame.lights:
+        t = truth.lights[light.name].V
+        reach = truth.mask & frame.lit_mask(light.name)
+        pen = reach & (t > 0.02) & (t < 0.98)
+        near = ndimage.binary_dilation(pen, iterations=margin) if margin else pen
+        regions = {"interior": reach & ~near, "penumbra": pen}
+        d = np.abs(np.asarray(frame.image(a.visibility[light.name]), np.float64)
+                   - np.asarray(frame.image(b.visibility[light.name]), np.float64))
+        for k, m in regions.items():
+            diff[k].append(d[m])
+    out = {}
+    for k, parts in diff.items():
+        d = np.concatenate(parts) if parts else np.zeros(0)
+        out[k] = {"pixels": int(d.size), "mean_abs": round(float(d.mean()), 6) if d.size else None,
+                  "within_0.05": round(float((d < 0.05).mean()), 6) if d.size else None}
+    return out
 
 
 def summary(rec: dict) -> str:
@@ -82,6 +123,11 @@ def summary(rec: dict) -> str:
               f"| {rec['source']} (shadowlab) at its values | {rec['source_loss']:.4f} |",
               f"| {rec['target']} at its defaults | {rec['engine_loss_defaults']:.4f} |",
               f"| {rec['target']} with the transferred values | {rec['engine_loss_transferred']:.4f} |"]
+    for k, what in (("interior", "umbra and lit, away from the penumbra"), ("penumbra", "the truth's penumbra")):
+        p = rec["parity"][k]
+        if p["pixels"]:
+            lines.append(f"| {rec['source']} against {rec['target']}, {what}: mean abs. difference "
+                         f"(share within 0.05) | {p['mean_abs']:.4f} ({100 * p['within_0.05']:.1f} %) |")
     if "engine_loss_fit" in rec:
         fit = ", ".join(f"{k} {v:.4g}" for k, v in rec["engine_fit"].items())
         lines.append(f"| {rec['target']} after its own fit ({fit}) | {rec['engine_loss_fit']:.4f} |")
