@@ -1,7 +1,8 @@
 """The ``shadowlab`` command line (typer).
 
 Exit codes (docs/cli.md; docs/ARCHITECTURE.md, Conventions): 0 ok, 1 a gate failed, 2 bad input
-or usage, 3 environment (no usable libLLVM, a file that cannot be written, out of memory), 4
+or usage, 3 environment (no usable libLLVM, a file that cannot be written, out of memory: a frame
+that cannot fit is refused before any work, :func:`shadowlab.pipeline.check_memory`), 4
 internal error (a bug: one "please report" line; the traceback with ``SHADOWLAB_DEBUG=1``), 130
 SIGINT (Ctrl-C), 143 SIGTERM, 141 the reader of stdout went away (``| head``). A signal stops the command with one
 line on stderr; the atomic writers remove what they had begun, so nothing partial is left.
@@ -51,7 +52,11 @@ if _command_process():
 import typer  # noqa: E402 - after the start-up handler: importing typer is most of start-up
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="Real-time shadow techniques against Mitsuba 3 ground truth.")
+                  help="Real-time shadow techniques against Mitsuba 3 ground truth.",
+                  epilog="Exit codes: 0 ok, 1 a gate failed, 2 bad input or usage, 3 environment (no usable libLLVM, "
+                         "a missing package, a file that cannot be written; a resolution or shadow map whose frame "
+                         "does not fit in the device's memory, refused before any work with the memory needed and "
+                         "free), 4 a shadowlab bug, 130 / 143 interrupted. See docs/cli.md.")
 
 DEBUG_ENV = "SHADOWLAB_DEBUG"
 
@@ -612,7 +617,8 @@ def gate(gatefile: str = typer.Argument(..., help="Gate file (TOML), e.g. refere
          frames: Optional[str] = typer.Option(None, "--frames", help="Run every gate at frames A:B (both ends "
                                               "included), one gate per frame, named NAME@frameN."),
          variant: Optional[str] = VariantOpt, references: Optional[str] = ReferencesOpt):
-    """Gate candidates against stored references; exit 0 pass, 1 a gate failed, 2 bad input."""
+    """Gate candidates against stored references; exit 0 pass, 1 a gate failed, 2 bad input, 3 a gate's frame
+    does not fit in memory (before any gate runs)."""
     from .gate import run_gate_file
     code, results = run_gate_file(gatefile, out_dir=Path(out), only=_split(only) if only else None, variant=variant,
                                   echo=typer.echo, force=force, frame=frame, frames=frames)

@@ -51,7 +51,7 @@ from .. import backend
 from ..errors import InputError
 from ..io.jsonio import write_json_atomic
 from ..io.png import write_bytes_atomic
-from ..pipeline import load_scene
+from ..pipeline import check_memory, load_scene
 from ..render.frame import FrameContext, make_frame
 from ..techniques import base
 from .rays import raw_ray_test
@@ -317,6 +317,9 @@ def run(out: Path, quick: bool = False, size=None, plan=PLAN) -> Path:
     backend.init()
     res = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": backend.machine_info(),
            "quick": quick, "size": list(size), "repeats": 2 if quick else REPEATS}
+    for scene, only in plan:                                  # exit 3 before any scene is measured
+        sc = load_scene(scene, size)
+        check_memory(sc.spec, {n: {} for n in techniques_on(sc.spec, only)})
     res["scenes"] = bench(size, plan, res["repeats"])
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -18,9 +18,10 @@ import drjit as dr
 import numpy as np
 
 from ..errors import InputError, ReferenceError_, ShadowlabError
-from ..pipeline import frame_list, load_scene, technique_metrics
+from ..pipeline import check_memory, frame_list, load_scene, technique_metrics
 from ..reference import store
 from ..render.frame import make_frame
+from ..scene.spec import scene_spec
 from ..techniques import base as tbase
 from . import preset as P
 from . import report as R
@@ -512,6 +513,9 @@ def fit(scene, technique: str | None = None, *, params=None, method: str = "auto
         R.check_out(Path(out), force, protected)
     if save_preset is not None:
         P.check_writable(save_preset, force, protected)
+    for s_ in scenes:                                         # exit 3 before any frame is built
+        check_memory(scene_spec(s_, resolution), {t: {**(pre.values.get(t, {}) if pre else {}), **sets_by.get(t, {})}
+                                                  for t in techs})
     per_scene = prepare_scenes(scenes, resolution, base, frame=frame, frames=frames)
     prepared = [x for ps in per_scene for x in ps]
     sc, truth, meta, frame = prepared[0]

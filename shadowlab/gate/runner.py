@@ -31,6 +31,7 @@ from ..reference.truth import LightTruth, Truth, render_truth
 from ..render.frame import make_frame
 from ..render.shading import compose
 from ..io.outdir import MARKER, claim_dir, marker_text
+from ..pipeline import check_memory
 from ..scene import load
 from ..scene.spec import load_spec, resolve
 from ..techniques import base as tbase
@@ -269,6 +270,19 @@ def _write_outputs(out_dir: Path, path, results, wall: float, interrupted: str |
         (out_dir / MARKER).write_text(marker_text("gate", OUTPUT_FILES), encoding="utf-8")
 
 
+def check_gates_memory(gates: list, variant=None) -> None:
+    """Exit 3 before any gate runs when a gate's frame does not fit in the device's memory
+    (:func:`shadowlab.pipeline.check_memory`; an image file candidate needs no frame)."""
+    for g in gates:
+        if g.candidate.kind == "exr":
+            continue
+        backend.init(variant)
+        spec = load_spec(resolve(g.scene))
+        spec = spec.with_resolution(*g.resolution) if g.resolution else spec
+        tech = {g.candidate.technique: dict(g.candidate.params)} if g.candidate.kind == "technique" else {}
+        check_memory(spec, tech)
+
+
 def run_gate_file(path, out_dir=None, only=None, variant=None, echo=print,
                   force: bool = False, frame=None, frames=None) -> tuple[int, list[GateResult]]:
     """``shadowlab gate``: evaluate, print one line per check, write ``out_dir/junit.xml`` and
@@ -282,7 +296,9 @@ def run_gate_file(path, out_dir=None, only=None, variant=None, echo=print,
         claim_dir(out_dir, "gate", force=force, protected=[gf.references, store.root()], files=OUTPUT_FILES)
     t0 = time.perf_counter()
     results: list = []
-    n_gates = len(at_frames(gf, gf.select(only), frame, frames))
+    gates = at_frames(gf, gf.select(only), frame, frames)
+    n_gates = len(gates)
+    check_gates_memory(gates, variant)
     try:
         run_gates(gf, only=only, variant=variant, echo=echo, into=results, frame=frame, frames=frames)
     except (KeyboardInterrupt, Interrupted) as e:

@@ -13,12 +13,13 @@ Modules: ``args`` (the shared options, parsed and checked), ``references`` (trut
 executor), ``compare`` (techniques against the truth, the typed run, reports), ``shimmer``.
 """
 
-from .args import check_reference_args, frame_list, parse_frames, parse_resolution
+from .args import check_memory, check_reference_args, frame_list, parse_frames, parse_resolution
 from .compare import compare, error_bands, run_techniques, technique_metrics
 from .references import (ReferenceJob, load_scene, reference, reference_batch, reference_frames, reference_jobs,
                          render_reference_job)
 from .shimmer import shimmer
 
-__all__ = ["parse_resolution", "check_reference_args", "parse_frames", "frame_list", "load_scene", "reference",
+__all__ = ["parse_resolution", "check_reference_args", "check_memory", "parse_frames", "frame_list", "load_scene",
+           "reference",
            "reference_frames", "ReferenceJob", "reference_jobs", "render_reference_job", "reference_batch",
            "run_techniques", "technique_metrics", "error_bands", "shimmer", "compare"]

@@ -1,5 +1,6 @@
 """The options the main jobs share, parsed and range-checked before anything is loaded:
-``--resolution``, ``--frame`` / ``--frames`` and the truth's settings (exit 2 naming the option)."""
+``--resolution``, ``--frame`` / ``--frames`` and the truth's settings (exit 2 naming the option),
+and whether a frame of that size fits in the device's memory (exit 3, :func:`check_memory`)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,10 @@ import numpy as np
 
 from ..errors import InputError
 from ..reference.truth import SEED_MAX
+from ..render.memory import Need, check_fits
+from ..techniques import base as tbase
 
-__all__ = ["parse_resolution", "check_reference_args", "parse_frames", "frame_list"]
+__all__ = ["parse_resolution", "check_reference_args", "parse_frames", "frame_list", "check_memory"]
 
 
 def parse_resolution(text) -> tuple | None:
@@ -80,3 +83,12 @@ def frame_list(spec, frame: int | None = None, frames=None) -> list[int] | None:
     spec.check_frame(ab[0])
     spec.check_frame(ab[1])
     return list(range(ab[0], ab[1] + 1))
+
+
+def check_memory(spec, techniques: dict, *, ss: int = 1) -> Need:
+    """Refuse before any work (EnvironmentProblem, exit 3) a frame of ``spec`` (at its camera's
+    resolution) rendered by ``techniques`` ({name: parameter overrides}) that needs more memory than
+    the device has free, naming both and the fix (:func:`shadowlab.render.memory.check_fits`)."""
+    W, H = spec.camera.resolution
+    values = {n: tbase.get(n).resolve(o) for n, o in techniques.items()}
+    return check_fits(spec, values, ss=ss, what=f"a frame of scene {spec.name!r} at {W}×{H}")

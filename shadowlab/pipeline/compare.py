@@ -23,7 +23,7 @@ from ..report.frames import build_frames
 from ..report.images import emitter_pixels
 from ..report.lights import light_info
 from ..techniques import base as tbase
-from .args import frame_list
+from .args import check_memory, frame_list
 from .references import load_scene, reference
 from .shimmer import shimmer
 
@@ -174,6 +174,7 @@ def compare(scene: str, techniques: list[str], sets: list[str] | None = None, ou
             overrides[n] = {**p, **overrides[n]}
     sc = load_scene(scene, resolution)
     sel = frame_list(sc.spec, frame, frames)
+    check_memory(sc.spec, {n: overrides.get(n, {}) for n in techniques})      # exit 3 before any work
     if frames is None:
         if sel:
             sc = sc.at_frame(sel[0])

@@ -22,7 +22,7 @@ from pathlib import Path
 from ..cluster import Executor, open_executor
 from ..cluster.executor import check_address, check_workers
 from ..errors import InputError
-from ..pipeline import frame_list, load_scene
+from ..pipeline import check_memory, frame_list, load_scene
 from ..reference import store
 from ..report.tables import higher_is_better
 from ..io.outdir import claim_dir
@@ -70,6 +70,8 @@ def sweep_jobs(scenes, technique: str, param: str, sets=None, resolution=None, f
         why = t.unsupported(sc.spec)
         if why:
             raise InputError(f"{technique} cannot render scene {sc.name!r}: {why}; sweep it on another scene")
+        for v in rng.values:                                  # exit 3 before any point runs
+            check_memory(sc.spec, {technique: {**overrides, rng.param.name: v}})
         # missing, stale, damaged: exit 2, `shadowlab reference …`
         truth, meta = store.load(sc.spec, sc.resolution, root)
         infos[sc.name] = {"scene": scene, "resolution": list(sc.resolution), "frame": sc.frame,
