@@ -8,8 +8,9 @@
 * the built-in scenes' table in ``docs/scenes.md`` (between ``<!-- scenes:begin -->`` and
   ``<!-- scenes:end -->``), from the scene files;
 * ``docs/bench/index.md`` and a page per older run, from the run records in ``docs/bench/runs/``
-  (:mod:`shadowlab.bench.record`): per part, one table set per machine, its latest run, older runs
-  linked.
+  (:mod:`shadowlab.bench.record`): first the sources' figures beside the latest runs'
+  (:mod:`shadowlab.bench.claims`), then per part one table set per machine, its latest run, older
+  runs linked.
 
 ``--check`` writes nothing and exits 1 naming the stale files. Sphinx then builds the site from
 ``docs/`` (``make docs``; the tests build it with warnings as errors).
@@ -21,6 +22,7 @@ import re
 import sys
 from pathlib import Path
 
+from .bench.claims import claims_table
 from .bench.record import load_records, machine_label, render_blocks
 from .scene.spec import builtin_names, load_spec, resolve
 from .techniques import base
@@ -110,11 +112,20 @@ def _machine_versions(m: dict) -> str:
     return ", ".join(f"{k} {m[k]}" for k in ("mitsuba", "drjit") if m.get(k)) or "versions not recorded"
 
 
+def claims_section(records: list[dict]) -> str:
+    """The sources' figures beside the latest runs' (:mod:`shadowlab.bench.claims`)."""
+    return ("## The sources' figures beside the measured ones\n\n"
+            "Each ratio a source states, beside the same ratio in each machine's latest run of the part "
+            "(its tables below). The figures and where the sources state them are declared in "
+            "`shadowlab.bench.claims`; tests never assert them. The sources measured on their own GPUs, so "
+            "a ratio here is of Dr.Jit kernels on the machine named.\n\n" + claims_table(records) + "\n")
+
+
 def bench_pages(records: list[dict]) -> dict[Path, str]:
     """``docs/bench/index.md`` and a page per run that is no longer the latest of its machine."""
     intro = (DOCS / "bench" / "about.md").read_text().strip()
     out: dict[Path, str] = {}
-    lines = [_NOTICE, "# Benchmarks\n", intro + "\n"]
+    lines = [_NOTICE, "# Benchmarks\n", intro + "\n", claims_section(records)]
     parts = [p for p in BENCH_PARTS if any(r["part"] == p for r in records)]
     parts += sorted({r["part"] for r in records} - set(parts))
     for part in parts:

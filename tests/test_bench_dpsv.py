@@ -117,3 +117,24 @@ def test_generated_meshes_have_the_asked_triangle_counts():
 def test_only_dpsv_is_a_bench_part():
     from shadowlab.bench import core
     assert "dpsv" in core.ONLY
+
+
+def test_the_sources_figures_table_reads_this_runs_ratios(bench):
+    """The docs' table of the sources' figures (:mod:`shadowlab.bench.claims`) reads the run's record:
+    each ratio of the JSON, to the table's rounding, and the figure each claim quotes is the one the
+    run printed beside its own."""
+    from shadowlab.bench.claims import CLAIMS, claims_table, measured
+    from shadowlab.bench.record import make_record
+    rec = make_record("dpsv", bench["md"], results=bench["json"])
+    hard, soft = bench["json"]["hard"], bench["json"]["soft"]
+    raw = (("fused_over_sm", [c["fused_over_sm"] for c in hard["cases"]]),
+           ("fused_over_dpsv", [c["fused_over_dpsv"] for c in hard["cases"]]),
+           ("soft_over_pcss", [soft["soft_over_pcss"]]))
+    claims = [c for c in CLAIMS if c.part == "dpsv"]
+    assert len(claims) == len(raw)
+    for c, (key, values) in zip(claims, raw):
+        assert float(c.figure.rstrip("×")) == pytest.approx(dpsv.PAPER[key], abs=0.005), (c.figure, key)
+        np.testing.assert_allclose(measured(c, rec), values, atol=0.006, err_msg=c.what)
+        assert c.figure in bench["md"], c.figure
+    table = claims_table([{**rec, "file": "run.json"}])
+    assert table.count("](runs/run.json)") == 3 and "not in the record" not in table

@@ -115,3 +115,17 @@ def test_the_plot_is_a_png(bench):
 def test_only_virtual_is_a_bench_part():
     from shadowlab.bench import core
     assert "virtual" in core.ONLY
+
+
+def test_the_sources_figures_table_reads_this_runs_ratios(bench):
+    """The docs' table of the sources' figures (:mod:`shadowlab.bench.claims`) reads the speed-up over
+    ``vtsm`` of every ξ from the run's record, to the table's rounding, beside [Giegl 2007]'s figure."""
+    from shadowlab.bench.claims import CLAIMS, measured
+    from shadowlab.bench.record import make_record
+    rec = make_record("virtual", bench["md"], results=bench["json"])
+    (claim,) = [c for c in CLAIMS if c.part == "virtual"]
+    raw = [r["speedup_over_vtsm"] for r in bench["json"]["cost"]["fvsm"].values()]
+    got = measured(claim, rec)
+    assert len(got) == len(raw) == len(virtual.XIS)
+    assert all(abs(a - b) <= 0.051 for a, b in zip(got, raw)), (got, raw)
+    assert claim.figure == f"≥ {virtual.CLAIMED_SPEEDUP:g}×"

@@ -9,6 +9,8 @@
   technique and host time, with its kernels and first host synchronisation, beside raw
   ``ray_test`` (``frames.json`` / ``frames.md``, ``--only frames``, not in the full run);
 * :mod:`.rays` — raw Mitsuba ``ray_test`` in one wavefront, the ceiling rays are measured against;
+* :mod:`.claims` — the sources' speed figures beside the latest run records' (a table of the
+  docs' bench page);
 * :mod:`.timing` — :func:`timed`, the one timing helper every benchmark uses.
 """
 
