@@ -274,22 +274,30 @@ def test_soft_penumbra_has_the_same_world_width_from_any_camera_distance(mitsuba
     assert 1.6 < ld[1] / ld[0] < 2.4, ld
 
 
-def test_soft_filter_size_closed_forms(mitsuba_backend, tmp_path):
-    """The filter's width in visibility-map pixels at receivers 4 m and 3 m from the light (a floor
-    and a platform under the same blocker edge), against its closed form from the G-buffer:
-    ``light_distance`` [Wang 2022, §1.4]: w_p / z̃ × H / (2 tan θ), the penumbra divided by the
-    distance to the light (z̃ = 4 − y under the downward light), so at equal w_p the platform's
-    filter has 4/3 of the floor's pixels; ``world``: w_p / (2 d tan θ_y / H), d the view depth."""
+SUN = {"name": "L", "kind": "directional", "direction": [0.0, -1.0, 0.0], "angular_diameter": 14.0,
+       "irradiance": 3.0, "shadow_map": 1024}
+
+
+@pytest.mark.parametrize("light", [PANEL, SUN], ids=["rect", "directional"])
+def test_soft_filter_size_closed_forms(mitsuba_backend, tmp_path, light):
+    """The filter's width in visibility-map pixels at receivers 4 m and 3 m below the blocker's light
+    (a floor and a platform under the same blocker edge), against its closed form from the
+    G-buffer. ``light_distance`` [Wang 2022, §1.4]: the penumbra w_p divided by the distance to the
+    light, in widths of the light's map: w_p / (2·z̃·tan θ) × H (z̃ = 4 − y under the downward rect
+    light), so at equal w_p the platform's filter has 4/3 of the floor's pixels; under the sun's
+    orthographic map, w_p / (2·half extent) × H, the same at both. ``world``: w_p / (2 d tan θ_y / H),
+    d the view depth."""
     from shadowlab.render.gbuffer import vec_numpy
     from shadowlab.techniques.shadow_map import view_for
     platform = {"name": "platform", "type": "rectangle", "rotate": [1, 0, 0, -90], "translate": [0.0, 1.0, 1.5],
                 "scale": [2.0, 1.0, 1.0]}
     cam = {"position": [0.0, 3.0, 6.0], "target": [0.0, 0.5, 0.5], "fov": 40, "resolution": [128, 128]}
-    frame = _scene(tmp_path, PANEL, EDGE_SHAPES + [platform], camera=cam)
+    frame = _scene(tmp_path, light, EDGE_SHAPES + [platform], camera=cam)
     p = vec_numpy(frame.gbuffer.p).astype(np.float64)
-    z_light = 4.0 - p[:, 1]
     H = frame.screen.height
-    tan_light = view_for(frame, "L", get("sm_dpsv_soft").resolve({})).proj.faces[0].scale
+    face = view_for(frame, "L", get("sm_dpsv_soft").resolve({})).proj.faces[0]
+    assert face.ortho == (light is SUN)
+    across = np.full(len(p), 2.0 * face.scale) if face.ortho else 2.0 * face.scale * (4.0 - p[:, 1])
     pixel_world = np.maximum(2.0 * frame.screen.depth.numpy() * frame.camera.tan_y / H, 1e-12)
     floor, plat = np.abs(p[:, 1]) < 1e-3, np.abs(p[:, 1] - 1.0) < 1e-3
     for mode in ("light_distance", "world"):
@@ -297,12 +305,12 @@ def test_soft_filter_size_closed_forms(mitsuba_backend, tmp_path):
         wp, px = (_flat(frame, aovs[f"L.{k}"]).astype(np.float64) for k in ("penumbra_width", "filter_pixels"))
         on = px > 0
         assert (on & floor).sum() > 20 and (on & plat).sum() > 20, mode
-        expect = wp / z_light * H / (2.0 * tan_light) if mode == "light_distance" else wp / pixel_world
+        expect = wp / across * H if mode == "light_distance" else wp / pixel_world
         np.testing.assert_allclose(px[on], expect[on], rtol=0.02, err_msg=mode)
         per_wp = px / np.maximum(wp, 1e-9)
         ratio = np.median(per_wp[on & plat]) / np.median(per_wp[on & floor])
         if mode == "light_distance":
-            assert abs(ratio - 4.0 / 3.0) < 0.03, ratio
+            assert abs(ratio - (1.0 if face.ortho else 4.0 / 3.0)) < 0.03, ratio
 
 
 def test_soft_interval_modes_and_search_taps(planes):
