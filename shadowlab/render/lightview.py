@@ -20,6 +20,19 @@ counts from the top (y = +1). Stored per texel, like a GPU depth buffer:
 * ``slope``: max(|∂d/∂x|, |∂d/∂y|) per texel of the caster's plane, for Direct3D's
   SlopeScaledDepthBias (computed from the hit's geometric normal, not by differencing).
 
+The whole shadow pass runs in Dr.Jit: texel rays generated from the texel index (per-face
+camera values gathered, or opaque scalars for one face, so a moved light or cascade reuses the
+compiled kernel), the casts (skipping, near-plane clipping, further layers, translucent casters)
+and the post-processing (depth, format, decoded z, slope, layers, τ) are one kernel, evaluated
+once when the view is made; :class:`LightView` holds the flat Dr.Jit arrays that techniques read
+(``view.dr(name)``, no upload) and makes numpy copies only when asked (``view.depth`` …). Ray
+directions, light space, slopes and depth conversions are computed in Float64 and rounded to
+float32 once, as the earlier host-side (numpy float64) implementation did: every texel keeps its
+bits (measured on the built-in scenes, every map and every shadow-map technique's visibility
+equal), and a stored depth depends only on its float32 hit point. On GPUs whose FP64 rate is
+low this post-processing is the place to move to float32 (a few ulp of depth, at UNORM
+rounding boundaries one step).
+
 Fits (which part of the scene a map covers) are explicit frozen dataclasses, part of the map's
 identity (:meth:`shadowlab.render.frame.FrameContext.light_view` caches per fit):
 
@@ -434,36 +447,108 @@ def _scene_sphere(light, scene, res: int) -> Projection:
     return Projection((Face(tuple(o), tuple(map(tuple, Rm)), False, t, near, far),), res, False)
 
 
-def quantise(d: np.ndarray, bits: int) -> np.ndarray:
-    """Emulate a depth-buffer format: 16/24-bit UNORM (round to nearest) or 32-bit float."""
-    d = np.clip(np.asarray(d, np.float64), 0.0, 1.0)
-    if bits == 32:
-        return d.astype(np.float32)
-    m = float(2 ** bits - 1)
-    return (np.round(d * m) / m).astype(np.float32)
+def quantise(d, bits: int):
+    """Emulate a depth-buffer format on NDC depths ``d`` (Dr.Jit Float64 or Float): 16/24-bit
+    UNORM (round to nearest, ties to even) or 32-bit float; mi.Float out."""
+    d = dr.clip(d, 0.0, 1.0)
+    if bits != 32:
+        m = float(2 ** bits - 1)
+        d = dr.round(d * m) / m
+    return mi.Float(d)
 
 
-@dataclass
+#: the per-face values :class:`FaceConstants` holds, in this order
+FACE_FIELDS = ("ox", "oy", "oz", "r00", "r01", "r02", "r10", "r11", "r12", "r20", "r21", "r22",
+               "scale", "near", "far", "shift_x", "shift_y")
+
+
+class FaceConstants:
+    """A light camera's per-face values as Dr.Jit Float64 that enter kernels as data, not literals:
+    one opaque scalar each for a one-face map, a table gathered by face index for a cube map. A
+    moved light (or a cascade that follows the camera) reuses the compiled light-view kernel."""
+
+    def __init__(self, proj: Projection):
+        rows = [[*f.origin, *f.R[0], *f.R[1], *f.R[2], f.scale, f.near, f.far, *f.shift] for f in proj.faces]
+        self.ortho = proj.faces[0].ortho
+        if any(f.ortho != self.ortho for f in proj.faces):
+            raise ValueError("a light view mixes orthographic and perspective faces")
+        self._one = [dr.opaque(mi.Float64, v) for v in rows[0]] if len(rows) == 1 else None
+        self._table = None if self._one else mi.Float64(np.asarray(rows, np.float64).ravel())
+        self._cache = {}
+
+    def get(self, face, name: str):
+        """The value ``name`` (a :data:`FACE_FIELDS` entry) of each texel's ``face`` (UInt32)."""
+        k = FACE_FIELDS.index(name)
+        if self._one is not None:
+            return self._one[k]
+        if name not in self._cache:
+            self._cache[name] = dr.gather(mi.Float64, self._table, face * len(FACE_FIELDS) + k)
+        return self._cache[name]
+
+    def origin(self, face):
+        return [self.get(face, n) for n in ("ox", "oy", "oz")]
+
+    def rows(self, face):
+        """Rows right, up, forward of each texel's face (world unit vectors, 3 × 3 Float64)."""
+        return [[self.get(face, f"r{r}{c}") for c in range(3)] for r in range(3)]
+
+
+def texel_grid(proj: Projection):
+    """(face, NDC x, NDC y) of every texel centre of every face, in (face, row, column) order: one
+    Dr.Jit wavefront (UInt32, Float64, Float64), NDC shifted by the face's ``shift``."""
+    N, F = proj.res, len(proj.faces)
+    k = dr.arange(mi.UInt32, F * N * N)
+    face = k // (N * N)
+    rem = k - face * (N * N)
+    row = rem // N
+    col = rem - row * N
+    c = lambda i: (mi.Float64(i) + 0.5) / N * 2.0 - 1.0  # noqa: E731 - texel centre in NDC
+    return face, c(col), -c(row)
+
+
+def _texel_rays(proj: Projection, consts: FaceConstants):
+    """(face, origins, unit directions) of every texel's ray (Float64 lists, origins on the face's
+    camera: the light's position, or its plane for orthographic faces)."""
+    face, x, y = texel_grid(proj)
+    x, y = x + consts.get(face, "shift_x"), y + consts.get(face, "shift_y")
+    s = consts.get(face, "scale")
+    R, org = consts.rows(face), consts.origin(face)
+    xs, ys = x * s, y * s
+    if consts.ortho:
+        return face, [org[c] + (xs * R[0][c] + ys * R[1][c]) for c in range(3)], R[2]
+    d = [xs * R[0][c] + ys * R[1][c] + R[2][c] for c in range(3)]
+    norm = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    return face, org, [d[c] / norm for c in range(3)]
+
+
+def texel_rays(proj: Projection):
+    """World-space rays through every texel centre of every face, as numpy (origins, dirs),
+    each (F·N·N, 3) float64, in (face, row, column) order (what :func:`light_view` casts, before it
+    moves the origins along the rays past the light's own surface)."""
+    face, o, d = _texel_rays(proj, FaceConstants(proj))
+    n = dr.width(face)
+    return tuple(np.stack([np.broadcast_to(np.asarray(a.numpy(), np.float64), n) for a in v], 1) for v in (o, d))
+
+
+@dataclass(eq=False)
 class LightView:
-    """A light's depth map (all faces) plus Dr.Jit copies for lookups in techniques."""
+    """A light's depth map (all faces) as flat Dr.Jit arrays in (layer,) face, row, column order,
+    evaluated once when the view is made; numpy copies of them (same names) are made on demand."""
 
     light: object
     proj: Projection
     bits: int
     backface: bool
-    depth: np.ndarray   # (F, N, N) quantised NDC depth, 1 = empty
-    z: np.ndarray       # (F, N, N) decoded light-space depth (far where empty)
-    slope: np.ndarray   # (F, N, N) max NDC depth slope per texel
-    hit: np.ndarray     # (F, N, N) bool
-    #: surfaces behind the first along each texel's ray, (L − 1, F, N, N) each, for the rasterizer's
-    #: bias (every fragment biased, the smallest kept): their quantised NDC depth (1 = none) and slope
-    layer_depth: np.ndarray | None = None
-    layer_slope: np.ndarray | None = None
-    #: translucent casters (``translucent=True``): (F, N, N, 3) τ product before the first opaque
-    #: surface, and the map of the nearest translucent surfaces (a LightView; empty where none)
-    trans_rgb: np.ndarray | None = None
+    #: ``depth`` (quantised NDC depth, 1 = empty), ``z`` (decoded light-space depth, far where
+    #: empty), ``slope`` (max NDC depth slope per texel): mi.Float; ``hit``: mi.Bool; with layers,
+    #: ``layer_depth`` / ``layer_slope`` ((L − 1)·F·N·N: the surfaces behind the first along each
+    #: texel's ray, for the rasterizer's bias; depth 1 = none); with translucent casters
+    #: ``trans_rgb0`` … ``trans_rgb2`` (the τ product before the first opaque surface)
+    maps: dict
+    #: translucent casters: the map of the nearest translucent surfaces (a LightView; empty where none)
     translucent: "LightView | None" = None
     _dr: dict = field(default_factory=dict, repr=False)
+    _np: dict = field(default_factory=dict, repr=False)
 
     @property
     def res(self):
@@ -481,12 +566,42 @@ class LightView:
     @property
     def layers(self) -> int:
         """Surfaces kept per texel: 1, or 1 + the layers behind the first."""
-        return 1 if self.layer_depth is None else 1 + len(self.layer_depth)
+        if "layer_depth" not in self.maps:
+            return 1
+        return 1 + dr.width(self.maps["layer_depth"]) // (self.nfaces * self.res * self.res)
+
+    def numpy(self, name: str):
+        """A map as numpy, (F, N, N) (``layer_depth`` / ``layer_slope``: (L − 1, F, N, N);
+        ``trans_rgb``: (F, N, N, 3)), read back once; None where the view has no such map."""
+        if name not in self._np:
+            shp = (self.nfaces, self.res, self.res)
+            if name == "trans_rgb":
+                if "trans_rgb0" not in self.maps:
+                    return None
+                a = np.stack([self.maps[f"trans_rgb{c}"].numpy() for c in range(3)], -1).reshape(*shp, 3)
+            elif name not in self.maps:
+                return None
+            else:
+                a = self.maps[name].numpy().reshape(-1, *shp)
+                a = a if name.startswith("layer_") else a[0]
+            self._np[name] = a
+        return self._np[name]
+
+    depth = property(lambda self: self.numpy("depth"), doc="(F, N, N) quantised NDC depth, 1 = empty (numpy)")
+    z = property(lambda self: self.numpy("z"), doc="(F, N, N) decoded light-space depth, far where empty (numpy)")
+    slope = property(lambda self: self.numpy("slope"), doc="(F, N, N) max NDC depth slope per texel (numpy)")
+    hit = property(lambda self: self.numpy("hit"), doc="(F, N, N) bool: the texel's ray met a caster (numpy)")
+    layer_depth = property(lambda self: self.numpy("layer_depth"),
+                           doc="(L − 1, F, N, N) NDC depth of the surfaces behind the first (1 = none; numpy)")
+    layer_slope = property(lambda self: self.numpy("layer_slope"), doc="(L − 1, F, N, N) their slopes (numpy)")
+    trans_rgb = property(lambda self: self.numpy("trans_rgb"),
+                         doc="(F, N, N, 3) τ product of the translucent casters before the first opaque one (numpy)")
 
     def dr(self, name: str):
-        """Flat Dr.Jit Float of the map ``name`` ('depth', 'z', 'slope'), made once."""
-        if name not in self._dr:
-            self._dr[name] = mi.Float(np.ascontiguousarray(getattr(self, name), np.float32).ravel())
+        """The flat Dr.Jit array of the map ``name`` ('depth', 'z', 'slope', 'hit', ...; no upload)
+        or of an array :meth:`derived` made."""
+        if name in self.maps:
+            return self.maps[name]
         return self._dr[name]
 
     def derived(self, key: str, make):
@@ -510,11 +625,8 @@ class LightView:
         :meth:`fetch`; 1 in a view without translucency). Whether a receiver lies behind the
         translucent caster is the biased depth test against :attr:`translucent`
         (``shadow_map.depth_test``), which the caller makes."""
-        if self.trans_rgb is None:
+        if "trans_rgb0" not in self.maps:
             return mi.Color3f(1.0)
-        for c in range(3):  # one flat channel each, cached where :meth:`dr` looks first
-            if f"trans_rgb{c}" not in self._dr:
-                self._dr[f"trans_rgb{c}"] = mi.Float(np.ascontiguousarray(self.trans_rgb[..., c], np.float32).ravel())
         return mi.Color3f(*[self.fetch(f"trans_rgb{c}", face, ix, iy) for c in range(3)])
 
     def lookup(self, p):
@@ -570,30 +682,6 @@ class LightView:
         return {"face": face, "u": u, "v": v, "z": qz, "d": d, "inside": inside, "texel": texel}
 
 
-def texel_rays(proj: Projection):
-    """World-space rays through every texel centre of every face, as numpy (origins, dirs),
-    each (F·N·N, 3), in (face, row, column) order."""
-    N = proj.res
-    c = (np.arange(N) + 0.5) / N * 2.0 - 1.0
-    X, Y = np.meshgrid(c, -c, indexing="xy")
-    os_, ds_ = [], []
-    for f in proj.faces:
-        R = np.array(f.R)
-        Xs, Ys = (X, Y) if f.shift == (0.0, 0.0) else (X + f.shift[0], Y + f.shift[1])
-        if f.ortho:
-            local_o = np.stack([Xs * f.scale, Ys * f.scale, np.zeros_like(X)], -1).reshape(-1, 3)
-            o = np.array(f.origin) + local_o @ R
-            d = np.broadcast_to(R[2], o.shape)
-        else:
-            local_d = np.stack([Xs * f.scale, Ys * f.scale, np.ones_like(X)], -1).reshape(-1, 3)
-            d = local_d @ R
-            d = d / np.linalg.norm(d, axis=1, keepdims=True)
-            o = np.broadcast_to(np.array(f.origin), d.shape)
-        os_.append(o)
-        ds_.append(d)
-    return np.concatenate(os_), np.concatenate(ds_)
-
-
 def light_view(scene, light, res: int | None = None, bits: int | None = None, backface: bool = False,
                fit=None, layers: int = 1, translucent: bool = False) -> LightView:
     """Render ``light``'s depth map by ray casting (module docstring has the conventions).
@@ -608,142 +696,164 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     ``translucent`` (a scene with translucent shapes): the depth of the first opaque surface, the
     translucent casters' colour in ``trans_rgb`` and a view of the nearest of them in
     ``translucent`` (module docstring).
+
+    One Dr.Jit wavefront over every texel of every face (and layer): rays, casts and depth
+    formats are traced into one kernel and evaluated once, when the view is returned.
     """
 
     scene = scene.casters  # the map holds what casts shadows (``casts_shadows``)
     proj = projection(light, scene, res, fit)
     bits = int(bits or light.depth_bits)
-    N, F = proj.res, len(proj.faces)
-    o_np, d_np = texel_rays(proj)
+    consts = FaceConstants(proj)
+    face, o64, d64 = _texel_rays(proj, consts)
+    f0 = proj.faces[0]
     # start past the light's own surface: spheres at their radius, planar lights just in front
     start = light.radius * 1.001 if light.kind in ("sphere", "point") else 1e-5 * scene.radius
     clip = False
-    if proj.faces[0].ortho:  # orthographic rays start on the near plane or at the light's position
-        start = min(0.0, proj.faces[0].near)
+    if f0.ortho:  # orthographic rays start on the near plane or at the light's position
+        start = min(0.0, f0.near)
         # a FrustumSlice whose near plane is the light's: rays start before the nearest caster, a plane
         # fixed in the world (from the near plane, which moves with the camera, hits would shift by
         # float rounding and stable cascades shimmer); "pancake" clamps a hit before the near plane
         # onto it (_texel_depths), "light" casts such a texel again from the near plane (clips it)
         clip = isinstance(proj.fit, FrustumSlice) and proj.fit.near_plane == "light"
         if isinstance(proj.fit, FrustumSlice) and proj.fit.near_plane != "caster":
-            f0 = proj.faces[0]
             start = min(start, float(np.min((_corners(scene) - np.array(f0.origin)) @ np.array(f0.R[2])))
                         - 1e-3 * scene.radius)
-    near_start = min(0.0, proj.faces[0].near)
-    o_np = o_np + d_np * start
-    ray = mi.Ray3f(mi.Point3f(*[o_np[:, k].astype(np.float32) for k in range(3)]),
-                   mi.Vector3f(*[d_np[:, k].astype(np.float32) for k in range(3)]))
+    t0 = dr.opaque(mi.Float64, start)
+    d = mi.Vector3f(*[mi.Float(a) for a in d64])
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o64[c] + d64[c] * t0) for c in range(3)]), d)
     own = scene.light_shapes.get(light.name)
     shapes = scene.mi_scene.shapes_dr()
     own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
     alpha = bool(getattr(scene, "has_alpha", False))
     table = scene.translucency() if translucent and getattr(scene, "has_translucent", False) else None
-    tr = {}
+    maps, near = {}, None
     if table is None:
-        si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha)
-        if proj.faces[0].ortho and clip:
-            si = _clip_near(scene, proj, si, o_np - d_np * start + d_np * near_start, d_np, backface, own_ptr, alpha)
+        si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha,
+                            near_clip=_near_clip(proj, o64, d64, d) if clip else None)
     else:
         si, tau, first = _cast_translucent(scene.mi_scene, ray, backface, own_ptr, alpha, table)
-        hf, sf, dqf, zf = _texel_depths(proj, first, bits)
-        shp = (F, N, N)
-        near = LightView(light=light, proj=proj, bits=bits, backface=backface, depth=dqf.reshape(shp),
-                         z=zf.astype(np.float32).reshape(shp), slope=sf.astype(np.float32).reshape(shp),
-                         hit=hf.reshape(shp))
-        tr = {"trans_rgb": np.stack([np.asarray(c.numpy(), np.float32) for c in (tau.x, tau.y, tau.z)], -1)
-              .reshape(F, N, N, 3), "translucent": near}
-    h, slope, dq, zq = _texel_depths(proj, si, bits)
-    extra, before = [], h
-    for _ in range(layers - 1):  # a few layers, each one wavefront over every texel
+        h, s, dq, zq = _texel_depths(proj, consts, face, first, bits)
+        near = LightView(light=light, proj=proj, bits=bits, backface=backface,
+                         maps={"depth": dq, "z": zq, "slope": s, "hit": h})
+        maps.update({f"trans_rgb{c}": mi.Float(tau[c]) for c in range(3)})
+    h, s, dq, zq = _texel_depths(proj, consts, face, si, bits)
+    maps.update({"depth": dq, "z": zq, "slope": s, "hit": h})
+    ld, ls, before = [], [], h
+    for _ in range(layers - 1):  # each layer continues the previous one's rays, in the same kernel
         si = cast_first_hit(scene.mi_scene, si.spawn_ray(ray.d), backface, own_ptr, alpha)
-        hk, sk, dk, _ = _texel_depths(proj, si, bits)
+        hk, sk, dk, _ = _texel_depths(proj, consts, face, si, bits)
         hk &= before                 # a ray that already left the scene meets nothing more
-        extra.append((np.where(hk, dk, 1.0).astype(np.float32), np.where(hk, sk, 0.0).astype(np.float32)))
+        ld.append(dr.select(hk, dk, 1.0))
+        ls.append(dr.select(hk, sk, 0.0))
         before = hk
-    shp = (F, N, N)
-    lay = {}
-    if extra:
-        lay = {"layer_depth": np.stack([e[0].reshape(shp) for e in extra]),
-               "layer_slope": np.stack([e[1].reshape(shp) for e in extra])}
-    return LightView(light=light, proj=proj, bits=bits, backface=backface, depth=dq.reshape(shp),
-                     z=zq.astype(np.float32).reshape(shp), slope=slope.astype(np.float32).reshape(shp),
-                     hit=h.reshape(shp), **lay, **tr)
+    if ld:
+        maps.update({"layer_depth": dr.concat(ld), "layer_slope": dr.concat(ls)})
+    arrays = list(maps.values()) + ([] if near is None else list(near.maps.values()))
+    dr.eval(*arrays)  # the light view is a stage boundary: one evaluation of every map
+    return LightView(light=light, proj=proj, bits=bits, backface=backface, maps=maps, translucent=near)
 
 
-def _clip_near(scene, proj, si, o_near, d_np, backface, own_ptr, alpha):
-    """``si`` where its hit lies past the near plane of orthographic ``proj``; elsewhere the first
-    hit of the texel's ray from the near plane (points ``o_near``): the casters nearer to the light
-    are clipped, as a rasterizer's depth clip does."""
+def _near_clip(proj, o64, d64, d):
+    """:func:`cast_first_hit`'s ``near_clip`` for orthographic ``proj``: each texel's ray from the
+    near plane, and the plane (the camera's position, forward axis and near distance, opaque)."""
     f0 = proj.faces[0]
-    o, d = mi.Point3f(*f0.origin), mi.Vector3f(*f0.R[2])
-    before = si.is_valid() & (dr.dot(si.p - o, d) < f0.near)
-    if not dr.any(before):
-        return si
-    ray = mi.Ray3f(mi.Point3f(*[o_near[:, k].astype(np.float32) for k in range(3)]),
-                   mi.Vector3f(*[d_np[:, k].astype(np.float32) for k in range(3)]))
-    return dr.select(before, cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha), si)
+    t_near = dr.opaque(mi.Float64, min(0.0, f0.near))
+    o_near = mi.Point3f(*[mi.Float(o64[c] + d64[c] * t_near) for c in range(3)])
+    return (mi.Ray3f(o_near, d), mi.Point3f(*[dr.opaque(mi.Float, x) for x in f0.origin]),
+            mi.Vector3f(*[dr.opaque(mi.Float, x) for x in f0.R[2]]), dr.opaque(mi.Float, f0.near))
 
 
-def _texel_depths(proj, si, bits):
-    """(hit, slope, quantised NDC depth, decoded light-space z) of every texel's hit ``si``."""
-    N, F = proj.res, len(proj.faces)
+def _texel_depths(proj, consts: FaceConstants, face, si, bits):
+    """(hit, slope, quantised NDC depth, decoded light-space z) of every texel's hit ``si``
+    (hit: mi.Bool, the others mi.Float). Light space, slopes and depth conversions run in Float64
+    (rounded to float32 once, at the end), as a host-side reference would: a texel's stored depth
+    then depends only on its float32 hit point."""
+    N = proj.res
     hit = si.is_valid()
-    # light-space z and the caster's plane in light space
-    face_idx = np.repeat(np.arange(F), N * N)
-    Rs = np.array([f.R for f in proj.faces])[face_idx]  # (M, 3, 3)
-    p = np.stack([si.p.x.numpy(), si.p.y.numpy(), si.p.z.numpy()], 1).astype(np.float64)
-    ng = np.stack([si.n.x.numpy(), si.n.y.numpy(), si.n.z.numpy()], 1).astype(np.float64)
-    h = hit.numpy()
-    f0 = proj.faces[0]
-    origins = np.array([f.origin for f in proj.faces])[face_idx]
-    rel = p - origins
-    q = np.einsum("mij,mj->mi", Rs, rel)
-    nl = np.einsum("mij,mj->mi", Rs, ng)
-    if proj.uniform:  # the map's own planes (shared by every face)
-        n_, f_, sc, fi = f0.near, f0.far, f0.scale, None
-    else:             # each face its own planes
-        if any(f.ortho != f0.ortho for f in proj.faces):
-            raise ValueError("a light view mixes orthographic and perspective faces")
-        n_, f_, sc = (proj.face_param(face_idx, k) for k in ("near", "far", "scale"))
-        fi = face_idx
-    z = np.where(h, q[:, 2], f_)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        if f0.ortho:
-            slope = 2.0 / N * sc * np.maximum(np.abs(nl[:, 0]), np.abs(nl[:, 1])) / (np.abs(nl[:, 2]) * (f_ - n_))
-        else:
-            B = f_ * n_ / (f_ - n_)
-            D = np.abs(np.einsum("mi,mi->m", nl, q))
-            slope = 2.0 / N * B * sc * np.maximum(np.abs(nl[:, 0]), np.abs(nl[:, 1])) / D
-    slope = np.where(h & np.isfinite(slope), np.minimum(slope, 1.0), 0.0)
-    d = np.where(h, proj.ndc_depth(np.clip(z, n_, f_), face=fi), 1.0)
-    dq = quantise(d, bits)
-    zq = np.where(h, proj.linear_depth(dq.astype(np.float64), face=fi), f_)
-    return h, slope, dq, zq
+    F64 = mi.Float64
+    p, ng = [F64(si.p[c]) for c in range(3)], [F64(si.n[c]) for c in range(3)]
+    R, org = consts.rows(face), consts.origin(face)
+    rel = [p[c] - org[c] for c in range(3)]
+    q = [R[r][0] * rel[0] + R[r][1] * rel[1] + R[r][2] * rel[2] for r in range(3)]
+    nl = [R[r][0] * ng[0] + R[r][1] * ng[1] + R[r][2] * ng[2] for r in range(3)]
+    n_, f_, sc = (consts.get(face, k) for k in ("near", "far", "scale"))
+    z = dr.select(hit, q[2], f_)
+    m = dr.maximum(dr.abs(nl[0]), dr.abs(nl[1]))
+    if consts.ortho:
+        slope = 2.0 / N * sc * m / (dr.abs(nl[2]) * (f_ - n_))
+    else:
+        B = f_ * n_ / (f_ - n_)
+        slope = 2.0 / N * B * sc * m / dr.abs(nl[0] * q[0] + nl[1] * q[1] + nl[2] * q[2])
+    slope = dr.select(hit & dr.isfinite(slope), dr.minimum(slope, 1.0), 0.0)
+    zc = dr.clip(z, n_, f_)
+    if consts.ortho:
+        d = (zc - n_) / (f_ - n_)
+    else:
+        d = f_ / (f_ - n_) * (1.0 - n_ / zc)
+    dq = quantise(dr.select(hit, d, 1.0), bits)
+    dq64 = F64(dq)
+    zq = n_ + dq64 * (f_ - n_) if consts.ortho else n_ / (1.0 - dq64 * (f_ - n_) / f_)
+    return hit, mi.Float(slope), dq, mi.Float(dr.select(hit, zq, f_))
 
 
 MAX_SKIPS = 16         # surfaces a texel ray may skip (the light's own shape, back faces)
 MAX_SKIPS_ALPHA = 64   # … in a scene with alpha-tested casters (foliage stacks many cards)
 
 
-def cast_first_hit(mi_scene, ray, backface: bool, own_ptr, alpha: bool = False):
+def cast_first_hit(mi_scene, ray, backface: bool, own_ptr, alpha: bool = False, *, active=True, near_clip=None):
     """First hit along ``ray`` that is not the light's own shape, (with ``backface``) that faces
     away from the ray origin and (``alpha``: the scene has alpha-tested casters) that is not a
     transparent texel. A symbolic loop: at most MAX_SKIPS (MAX_SKIPS_ALPHA) surfaces are
-    skipped."""
-    return _cast_loop(mi_scene, ray, backface, own_ptr, alpha)
+    skipped. Rays where ``active`` is False are not cast (no hit).
+
+    ``near_clip`` = (ray_near, origin, forward, near): a first hit whose light-space depth
+    (forward·(p − origin)) lies before ``near`` is cast again along ``ray_near`` (from the near
+    plane, with a fresh skip budget): the casters nearer to the light are clipped, as a
+    rasterizer's depth clip does; in the same loop, so a clipped map costs no second wavefront."""
+    if near_clip is None:
+        return _cast_loop(mi_scene, ray, backface, own_ptr, alpha, mi.Bool(active))
+    return _cast_clipped(mi_scene, ray, backface, own_ptr, alpha, mi.Bool(active), *near_clip)
+
+
+def cast_flags(alpha: bool):
+    """What a cast computes of each hit: position, geometric normal, shape (and its uv where
+    alpha-tested casters read their texture); the rest of a SurfaceInteraction is not needed."""
+    return mi.RayFlags.Minimal | mi.RayFlags.UV if alpha else mi.RayFlags.Minimal
 
 
 @dr.syntax
-def _cast_loop(mi_scene, ray, backface, own_ptr, alpha=False):
+def _cast_loop(mi_scene, ray, backface, own_ptr, alpha, active):
     max_skips = MAX_SKIPS_ALPHA if alpha else MAX_SKIPS
-    si = mi_scene.ray_intersect(ray)
+    flags = cast_flags(alpha)
+    si = mi_scene.ray_intersect(ray, flags, False, active)
     i = mi.UInt32(0)
-    skip = _skip(si, ray, backface, own_ptr, alpha)
+    skip = active & _skip(si, ray, backface, own_ptr, alpha)
     while dr.hint(skip & (i < max_skips), max_iterations=-1):
         ray = si.spawn_ray(ray.d)
-        si = mi_scene.ray_intersect(ray)
+        si = mi_scene.ray_intersect(ray, flags, False, True)
         skip = _skip(si, ray, backface, own_ptr, alpha)
         i += 1
+    return si
+
+
+@dr.syntax
+def _cast_clipped(mi_scene, ray, backface, own_ptr, alpha, active, ray_near, origin, forward, near):
+    max_skips = MAX_SKIPS_ALPHA if alpha else MAX_SKIPS
+    flags = cast_flags(alpha)
+    si = mi_scene.ray_intersect(ray, flags, False, active)
+    i = mi.UInt32(0)
+    skip = active & _skip(si, ray, backface, own_ptr, alpha)
+    redo = ~skip & si.is_valid() & (dr.dot(si.p - origin, forward) < near)
+    clipped = mi.Bool(False)
+    while dr.hint((skip | redo) & (i < max_skips), max_iterations=-1):
+        ray = dr.select(redo, ray_near, si.spawn_ray(ray.d))
+        i = dr.select(redo, 0, i + 1)
+        clipped |= redo
+        si = mi_scene.ray_intersect(ray, flags, False, True)
+        skip = _skip(si, ray, backface, own_ptr, alpha)
+        redo = ~skip & ~clipped & si.is_valid() & (dr.dot(si.p - origin, forward) < near)
     return si
 
 
@@ -752,7 +862,8 @@ def _cast_translucent(mi_scene, ray, backface, own_ptr, alpha, table):
     """:func:`cast_first_hit` passing translucent surfaces too: (first opaque hit, τ product of
     the translucent surfaces crossed before it (mi.Color3f), the first translucent hit as a
     :class:`_Hit` (not valid where there was none))."""
-    si = mi_scene.ray_intersect(ray)
+    flags = cast_flags(alpha)
+    si = mi_scene.ray_intersect(ray, flags, False, True)
     n = dr.width(si.p)
     first_p, first_n, found = dr.zeros(mi.Point3f, n), dr.zeros(mi.Vector3f, n), dr.zeros(mi.Bool, n)
     tau = mi.Color3f(1.0)
@@ -766,7 +877,7 @@ def _cast_translucent(mi_scene, ray, backface, own_ptr, alpha, table):
         first_n = dr.select(new, si.n, first_n)
         found |= trans
         ray = si.spawn_ray(ray.d)
-        si = mi_scene.ray_intersect(ray)
+        si = mi_scene.ray_intersect(ray, flags, False, True)
         trans, tau_s = surface_tau(si, table)
         own = _skip(si, ray, backface, own_ptr, alpha) & ~trans
         i += 1
