@@ -453,9 +453,9 @@ def fit(
 def transfer(scene: str = typer.Argument(..., help="Built-in scene name or path to a .toml scene (needs its stored "
                                          "reference)."),
              technique: str = typer.Option(..., "--technique", "-t", help="The shadowlab technique whose values are "
-                                           "transferred (hard, pcf)."),
+                                           "transferred (hard, pcf, vsm)."),
              to: str = typer.Option(..., "--to", help="The engine technique that receives them (three:basic, "
-                                    "three:pcf)."),
+                                    "three:pcf, three:vsm, babylon:basic)."),
              preset: Optional[str] = typer.Option(None, "--preset", help="The technique's values from a preset file "
                                                   "(e.g. the one shadowlab fit saved); --set overrides it."),
              set_: List[str] = typer.Option([], "--set", help="TECHNIQUE.PARAM=VALUE: the technique's values, or the "

@@ -12,9 +12,10 @@ For each case (scene, shadowlab technique, engine technique), in one run:
 4. parity (:func:`shadowlab.fit.transfer.parity`): shadowlab's image against the engine's with the
    transferred values, away from the truth's penumbra and inside it.
 
-The engine settings a case keeps (``ENGINE_SETS``) are those a user of that scene sets first: the
-sun's orthographic frustum on ``street`` (three.js's ±5 m default shadows nothing in a 400 m scene;
-159 m is what fitting ``extent`` found).
+Every engine render of a case keeps the engine's own map size and (``ENGINE_SETS``) what a user of
+that scene sets first: the sun's orthographic frustum on ``street`` (three.js's ±5 m default shadows
+nothing in a 400 m scene; 159 m is what fitting ``extent`` found). Parity is measured with the
+engine's map as many texels as shadowlab's.
 """
 
 from __future__ import annotations
@@ -36,6 +37,8 @@ CASES = (
     ("contact", "pcf", "three:pcf"), ("two_lights", "pcf", "three:pcf"), ("foliage", "pcf", "three:pcf"),
     ("street", "pcf", "three:pcf"),
     ("contact", "hard", "three:basic"), ("two_lights", "hard", "three:basic"), ("foliage", "hard", "three:basic"),
+    ("contact", "vsm", "three:vsm"), ("two_lights", "vsm", "three:vsm"), ("foliage", "vsm", "three:vsm"),
+    ("contact", "hard", "babylon:basic"), ("two_lights", "hard", "babylon:basic"), ("foliage", "hard", "babylon:basic"),
 )
 #: engine settings kept through the transfer, per scene
 ENGINE_SETS = {"street": {"extent": 159.4}}
@@ -52,7 +55,6 @@ def case(scene: str, source: str, target: str, budget: Budget) -> dict:
     rec = transfer(scene, source, target, sets=sets, fit_engine=True, budget=budget)
     rec["source_fit"] = {"params": list(src.fit_params(src.resolve(values))), "values": values,
                          "loss_before": fitted["loss_before"], "loss_after": fitted["loss_after"]}
-    rec["engine_sets"] = ENGINE_SETS.get(scene, {})
     return rec
 
 
@@ -67,7 +69,8 @@ def _parity(p: dict) -> str:
 def markdown(res: dict) -> str:
     lines = ["# Fit in shadowlab, paste into the engine", "",
              f"Machine: {machine_text(res['machine'])}. Date: {res['date']}. Engines: three.js "
-             f"{res['three']} in headless Chromium (SwiftShader). Loss: the engine's fit loss against the truth "
+             f"{res['three']} and Babylon.js {res['babylon']} in headless Chromium (SwiftShader). Loss: the "
+             "engine's fit loss against the truth "
              "(visibility RMSE over the truth's penumbra, noise floor subtracted) at each scene's stored "
              f"reference; every fit: {res['budget']['evals']} evaluations per parameter, "
              f"{res['budget']['rounds']} round.", "",
@@ -75,12 +78,13 @@ def markdown(res: dict) -> str:
              "engine with them | engine's own fit | engine after it | parity: interior | parity: penumbra |",
              "|---|---|---:|---|---:|---|---:|---|---:|---:|---:|"]
     for r in res["cases"]:
-        kept = f" (kept: {_fmt(r['engine_sets'])})" if r["engine_sets"] else ""
+        kept = f" ({_fmt(r['engine_kept'])})" if r["engine_kept"] else ""
         lines.append(f"| {r['scene']} | `{r['source']}`: {_fmt(r['source_fit']['values'])} | {r['source_loss']:.3f} "
                      f"| `{r['target']}`{kept} | {r['engine_loss_defaults']:.3f} | {_fmt(r['transferred'])} | "
                      f"{r['engine_loss_transferred']:.3f} | {_fmt(r['engine_fit'])} | {r['engine_loss_fit']:.3f} | "
                      f"{_parity(r['parity']['interior'])} | {_parity(r['parity']['penumbra'])} |")
-    lines += ["", "Parity: shadowlab's technique at its fitted values against the engine with the transferred ones, "
+    lines += ["", "Parity: shadowlab's technique at its fitted values against the engine with the values transferred "
+              "for a map of as many texels as shadowlab's, "
               "pooled over the lights at the pixels each reaches: mean absolute difference of the visibilities and, "
               "in brackets, the share of pixels within 0.05; interior = the truth's umbra and lit pixels more than 2 "
               "pixels from its penumbra (bias, acne and precision), penumbra = 0.02 < V < 0.98 (the filters).",
@@ -96,7 +100,8 @@ def run(out: Path, quick: bool = False) -> Path:
     budget = Budget(evals=4 if quick else 10, rounds=1)
     cases = CASES[:1] if quick else CASES
     res = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": backend.machine_info(),
-           "three": package_version("three"), "budget": {"evals": budget.evals, "rounds": budget.rounds},
+           "three": package_version("three"), "babylon": package_version("@babylonjs/core"),
+           "budget": {"evals": budget.evals, "rounds": budget.rounds},
            "cases": [case(s, a, b, budget) for s, a, b in cases]}
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "transfer.json", res)

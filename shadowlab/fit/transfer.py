@@ -5,8 +5,10 @@ The mapping is :mod:`shadowlab.techniques.transfer` (per receiver point in world
 over the points). This job measures it against the truth with the engine's own loss
 (:func:`~shadowlab.fit.run.default_loss`): shadowlab's technique at its values, the engine at its
 defaults, the engine with the transferred values and, with ``fit_engine``, the engine after its own
-fit (the same search ``shadowlab fit -t ENGINE`` runs). It saves the transferred values as a preset
-of the engine's own property names.
+fit (the same search ``shadowlab fit -t ENGINE`` runs), all with the engine settings ``--set`` gives
+(its own ``mapSize`` unless set). Parity (:func:`parity`) compares shadowlab's image with the
+engine's at the same map size (the values transferred again for that map). It saves the
+transferred values as a preset of the engine's own property names.
 """
 
 from __future__ import annotations
@@ -44,23 +46,33 @@ def transfer(scene: str, source: str, target: str, *, sets=None, preset=None, lo
         if why:
             raise InputError(why)
     src_values = src.resolve({**(pre.values.get(source, {}) if pre else {}), **sets_by.get(source, {})})
-    eng_base = tgt.resolve(sets_by.get(target, {}))
+    kept = dict(sets_by.get(target, {}))
+    eng_base = tgt.resolve(kept)
     loss = loss or default_loss(target)
     obj_e = Objective(frame, truth, tgt, loss)
     obj_s = Objective(frame, truth, src, loss)
     first = tgt.render(frame, eng_base)                       # the engine's shadow cameras at its settings
-    mapped = T.transfer(frame, src, src_values, tgt, first.stats)
+    mapped = T.transfer(frame, src, src_values, tgt, eng_base, first.stats)
     eng_t = tgt.resolve({**eng_base, **mapped["values"]})
     rec = {"scene": sc.name, "resolution": list(sc.resolution), "source": source, "target": target,
            "loss": obj_e.describe(), "source_values": {k: src_values[k] for k in src.fit_params(src_values)},
            "source_loss": obj_s.report(obj_s.value(src_values)),
-           "engine_defaults": {k: eng_base[k] for k in mapped["values"]},
+           "engine_defaults": {k: eng_base[k] for k in mapped["values"]}, "engine_kept": kept,
            "engine_loss_defaults": obj_e.report(obj_e.value(eng_base)),
            "transferred": mapped["values"], "spread": mapped["spread"], "points": mapped["points"],
            "engine_loss_transferred": obj_e.report(obj_e.value(eng_t))}
-    rec["parity"] = parity(frame, truth, src.render(frame, src_values), tgt.render(frame, eng_t))
+    # parity: the engine's map as many texels as shadowlab's, the values transferred for that map
+    same = {**kept, **T.map_size(frame, src, src_values, tgt)}
+    if same != kept:
+        p_base = tgt.resolve(same)
+        p_map = T.transfer(frame, src, src_values, tgt, p_base, tgt.render(frame, p_base).stats)
+        eng_p = tgt.resolve({**p_base, **p_map["values"]})
+    else:
+        eng_p = eng_t
+    rec["parity"] = {**parity(frame, truth, src.render(frame, src_values), tgt.render(frame, eng_p)),
+                     "engine_values": {k: eng_p[k] for k in (*mapped["values"], *same)}}
     if fit_engine:
-        own = execute(plan(target, frame, loss=loss, sets=sets_by.get(target, {})), frame, truth, budget or Budget())
+        own = execute(plan(target, frame, loss=loss, sets=kept), frame, truth, budget or Budget())
         rec["engine_fit"] = {k: v["fitted"] for k, v in own["params"].items()}
         rec["engine_loss_fit"] = own["loss_after"]
         rec["engine_fit_evaluations"] = own["evaluations"]
@@ -112,8 +124,9 @@ def parity(frame, truth, a, b, *, margin: int = 2) -> dict:
 
 def summary(rec: dict) -> str:
     """The terminal lines of a transfer: the values (with their spread over the points) and the losses."""
+    kept = ", ".join(f"{k} {v}" for k, v in rec["engine_kept"].items())
     lines = [f"{rec['source']} -> {rec['target']} on {rec['scene']} ({rec['points']} receiver points; "
-             f"loss {rec['loss']['name']})", "",
+             f"loss {rec['loss']['name']}; engine settings kept: {kept or 'its defaults'})", "",
              "| parameter | engine default | transferred | 10th-90th percentile over the points |",
              "|---|---:|---:|---|"]
     for k, v in rec["transferred"].items():
@@ -123,10 +136,12 @@ def summary(rec: dict) -> str:
               f"| {rec['source']} (shadowlab) at its values | {rec['source_loss']:.4f} |",
               f"| {rec['target']} at its defaults | {rec['engine_loss_defaults']:.4f} |",
               f"| {rec['target']} with the transferred values | {rec['engine_loss_transferred']:.4f} |"]
+    size = rec["parity"]["engine_values"].get("mapSize")
     for k, what in (("interior", "umbra and lit, away from the penumbra"), ("penumbra", "the truth's penumbra")):
         p = rec["parity"][k]
         if p["pixels"]:
-            lines.append(f"| {rec['source']} against {rec['target']}, {what}: mean abs. difference "
+            lines.append(f"| {rec['source']} against {rec['target']}{f' (mapSize {size})' if size else ''}, {what}: "
+                         "mean abs. difference "
                          f"(share within 0.05) | {p['mean_abs']:.4f} ({100 * p['within_0.05']:.1f} %) |")
     if "engine_loss_fit" in rec:
         fit = ", ".join(f"{k} {v:.4g}" for k, v in rec["engine_fit"].items())

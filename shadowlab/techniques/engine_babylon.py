@@ -40,16 +40,20 @@ is not directional.
 
 from __future__ import annotations
 
+import numpy as np
+
 from .base import Param, register
-from .engines import EngineTechnique
+from .engines import EngineTechnique, ReceiverPoints
 
 SOURCE = "[Babylon 2026]"
 PACKAGE = "@babylonjs/core"
 
 _BIAS = Param("bias", 0.00005, "float", -0.01, 0.05, "shadow-map depth (0..1)", source=SOURCE,
-              doc="ShadowGenerator.bias: added to the receiver's depth before the test, against acne")
+              doc="ShadowGenerator.bias: added to the depth the shadow pass stores (the casters' depth "
+                  "metric), against acne")
 _NORMAL_BIAS = Param("normalBias", 0.0, "float", 0.0, 0.5, "world units (m)", source=SOURCE,
-                     doc="ShadowGenerator.normalBias: moves the receiver along its normal before the test")
+                     doc="ShadowGenerator.normalBias: the shadow pass moves each caster vertex inward along its "
+                         "normal by normalBias × sin θ (θ between the normal and the light)")
 _MAP_SIZE = Param("mapSize", 1024, "int", 16, 8192, "texels", source=SOURCE,
                   doc="new ShadowGenerator(mapSize, light): the shadow map's resolution")
 _MIN_Z = Param("shadowMinZ", 0.0, "float", 0.0, 1e4, "m", source=SOURCE,
@@ -61,6 +65,22 @@ _QUALITY = Param("filteringQuality", "high", "choice", choices=("high", "medium"
 _DEPTH_SCALE = Param("depthScale", 50.0, "float", 1.0, 1000.0, "", source=SOURCE,
                      doc="ShadowGenerator.depthScale: the exponent scale of exponential shadow maps")
 _COMMON = (_BIAS, _NORMAL_BIAS, _MAP_SIZE, _MIN_Z, _MAX_Z)
+
+
+def caster_bias(points: ReceiverPoints) -> dict:
+    """Babylon.js's ``bias`` and ``normalBias``, which act on the casters, that do at each point what
+    shadowlab's receiver-side biases did: the stored depth metric grows by ``bias``, so the gap a
+    receiver shift Δz toward the light opens is Δz·∂metric/∂z; a caster moved inward along its normal
+    by normalBias·sin θ moves away along the light's ray by normalBias·sin θ/cos θ, and a receiver
+    lifted δ along its normal is δ/cos θ from its plane along that ray, so normalBias = δ/sin θ.
+
+    >>> pts = ReceiverPoints(*(np.array([x]) for x in (0.02, 0.01, 0.0, 0.6, 4.0, 0.01, 0.03)))
+    >>> {k: [round(float(x), 6) for x in v] for k, v in caster_bias(pts).items()}
+    {'bias': [0.0006], 'normalBias': [0.0125]}
+    """
+    sin = np.sqrt(np.maximum(1.0 - points.cos ** 2, 0.0))
+    return {"bias": points.dz * points.engine_depth_per_unit,
+            "normalBias": np.where(points.normal > 0, points.normal / np.maximum(sin, 1e-3), 0.0)}
 
 
 class _Babylon(EngineTechnique):
@@ -93,6 +113,10 @@ class BabylonBasic(_Babylon):
     summary = "Babylon.js 9 in Chromium: unfiltered shadow map"
     shadow_type = "basic"
     params = _COMMON
+    transfer_from = ("hard",)
+
+    def from_shadowlab(self, points: ReceiverPoints, values: dict) -> dict:
+        return caster_bias(points)
 
 
 @register

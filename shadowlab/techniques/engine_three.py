@@ -64,13 +64,27 @@ _BLUR = Param("blurSamples", 8, "int", 1, 64, "samples", source=SOURCE,
 BILINEAR_TAP_VARIANCE = 1.0 / 6.0
 #: variance per axis of PCFShadowMap's 5 Vogel-disk taps at radius 1 (offsets √((i + ½)/5): mean square ½)
 VOGEL5_VARIANCE = 0.25
+#: VSMShadowMap's reads besides its blur, texels² per axis: the blur passes' taps (one axis reads the
+#: nearest-filtered depth, 1/12, the other the linear-filtered moments, 1/6: 1/8 on average) and the
+#: receiver's bilinear lookup of the blurred moments (1/6)
+VSM_READ_VARIANCE = 1.0 / 8.0 + 1.0 / 6.0
+
+
+def vsm_blur_variance(samples: int) -> float:
+    """Per-axis variance of VSMShadowMap's blur at radius 1: ``samples`` box taps evenly spaced over
+    [−1, 1] (three.js's vsm.glsl), mean square (S + 1)/(3(S − 1)); one sample does not blur.
+
+    >>> [round(vsm_blur_variance(s), 6) for s in (1, 2, 3, 8)]
+    [0.0, 1.0, 0.666667, 0.428571]
+    """
+    return 0.0 if samples <= 1 else (samples + 1) / (3.0 * (samples - 1))
 
 
 def depth_bias(points: ReceiverPoints) -> dict:
     """three.js's ``bias`` (added to the receiver's window depth: negative moves it toward the light)
     and ``normalBias`` (world units along the receiver's normal) that do at each point what shadowlab did.
 
-    >>> pts = ReceiverPoints(*(np.array([x]) for x in (0.02, 0.01, 0.0, 4.0, 0.01, 0.03)))
+    >>> pts = ReceiverPoints(*(np.array([x]) for x in (0.02, 0.01, 0.0, 1.0, 4.0, 0.01, 0.03)))
     >>> {k: [round(float(x), 6) for x in v] for k, v in depth_bias(pts).items()}
     {'bias': [-0.0006], 'normalBias': [0.01]}
     """
@@ -107,7 +121,7 @@ class ThreeBasic(_Three):
     def fit_params(self, values: dict) -> tuple:
         return ("bias", "normalBias")
 
-    def from_shadowlab(self, points: ReceiverPoints) -> dict:
+    def from_shadowlab(self, points: ReceiverPoints, values: dict) -> dict:
         return depth_bias(points)
 
 
@@ -125,7 +139,7 @@ class ThreePcf(_Three):
     def fit_params(self, values: dict) -> tuple:
         return ("bias", "normalBias", "radius")
 
-    def from_shadowlab(self, points: ReceiverPoints) -> dict:
+    def from_shadowlab(self, points: ReceiverPoints, values: dict) -> dict:
         """:func:`depth_bias`, and the ``radius`` whose footprint (5 Vogel taps of radius r texels,
         each a 2×2 comparison) has shadowlab's filter variance: r²·¼ + ⅙ = σ²/texel² (r = 0 when
         shadowlab's filter is narrower than one hardware tap)."""
@@ -143,9 +157,18 @@ class ThreeVsm(_Three):
     summary = "three.js r187 in Chromium: variance shadow map"
     shadow_type = "vsm"
     params = (_BIAS, _NORMAL_BIAS, _RADIUS_VSM, _BLUR, _MAP_SIZE, _NEAR, _FAR, _EXTENT)
+    transfer_from = ("vsm",)
 
     def fit_params(self, values: dict) -> tuple:
         return ("bias", "normalBias", "radius")
+
+    def from_shadowlab(self, points: ReceiverPoints, values: dict) -> dict:
+        """:func:`depth_bias`, and the blur ``radius`` whose footprint at ``blurSamples`` has
+        shadowlab's filter variance: r²·:func:`vsm_blur_variance` + :data:`VSM_READ_VARIANCE` = σ²/texel²."""
+        var = points.filter_var / points.engine_texel ** 2
+        k = vsm_blur_variance(int(values["blurSamples"]))
+        radius = np.sqrt(np.maximum(var - VSM_READ_VARIANCE, 0.0) / k) if k else np.zeros_like(var)
+        return {**depth_bias(points), "radius": radius}
 
     def unsupported(self, spec) -> str | None:
         point = [l.name for l in spec.lights if l.kind in ("point", "sphere")]

@@ -197,13 +197,15 @@ class ReceiverPoints:
     """Per receiver point (flat numpy arrays), what a shadowlab shadow-map technique does in world
     units and the engine's shadow camera there (:mod:`shadowlab.techniques.transfer`): ``dz`` the
     distance the compared depth moves toward the light, ``normal`` the distance the point moves
-    along its normal, ``filter_var`` the per-axis variance of the filter footprint (m²);
+    along its normal, ``filter_var`` the per-axis variance of the filter footprint (m²), ``cos`` the
+    cosine between the point's normal and the direction to the light;
     ``engine_z`` the depth along the engine camera's axis, ``engine_texel`` its texel's world size,
     ``engine_depth_per_unit`` its stored depth per world unit."""
 
     dz: np.ndarray
     normal: np.ndarray
     filter_var: np.ndarray
+    cos: np.ndarray
     engine_z: np.ndarray
     engine_texel: np.ndarray
     engine_depth_per_unit: np.ndarray
@@ -270,9 +272,10 @@ class EngineTechnique(Technique):
     #: shadowlab techniques whose parameters :meth:`from_shadowlab` maps onto this engine's
     transfer_from: tuple = ()
 
-    def from_shadowlab(self, points: ReceiverPoints) -> dict:
+    def from_shadowlab(self, points: ReceiverPoints, values: dict) -> dict:
         """Per point, the engine's parameter values that do there what the shadowlab technique
-        does (:mod:`shadowlab.techniques.transfer`): param -> (N,) array."""
+        does (:mod:`shadowlab.techniques.transfer`), with the engine's other settings ``values``
+        kept: param -> (N,) array."""
         raise InputError(f"{self.name} has no transfer from shadowlab's techniques; fit it itself")
 
     def clip_values(self, values: dict) -> dict:

@@ -371,6 +371,13 @@ class PrefilteredTechnique(ShadowMapTechnique):
     def bias_values(self, values: dict) -> dict:
         return bias_values(values)
 
+    def filter_variance(self, values: dict) -> float:
+        """Per-axis variance (texels²) of blur + bilinear lookup: Σ w_k (k − c)² over the blur's taps
+        about their centre, plus the lookup's tent 1/6."""
+        n = int(values.get("kernel", 1))
+        w, c = blur_weights(n, values.get("filter", "box")), centre_shift(n)
+        return sum(wk * (k - c) ** 2 for wk, k in zip(w, tap_offsets(n))) + 1.0 / 6.0
+
     def evaluate(self, frame, light, view, values, ctx):
         n = int(values.get("kernel", 1))
         rec = prepare_receiver(frame, view, ctx.bias)

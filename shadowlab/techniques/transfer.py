@@ -32,13 +32,15 @@ point in world units, so the transfer is made point by point and then summarised
 
 from __future__ import annotations
 
+import drjit as dr
 import numpy as np
 
 from ..errors import InputError
 from ..render.gbuffer import vec_numpy
 from .base import get, names
 from .engines import EngineTechnique, ReceiverPoints, shadow_cameras
-from .shadow_map import ShadowMapTechnique, opaque_bias, receiver, stored_depth, texel_index, view_for
+from .shadow_map import (ShadowMapTechnique, map_settings, opaque_bias, receiver, stored_depth, texel_index,
+                         to_light, view_for)
 
 SOURCE = "[Buljan 2020, §2.3]"
 
@@ -72,8 +74,9 @@ def receiver_points(frame, technique: ShadowMapTechnique, values: dict, light_na
     keep &= cam["inside"]
     scale = cam["texel"][keep] / texel[keep]                # engine texels per shadowlab texel, in world size
     raster = np.asarray(b.numpy(), np.float64)[keep] / _depth_per_unit(view, z[keep])
+    cos = np.abs(np.asarray(dr.dot(rec["ng"], to_light(view, gb.p)).numpy(), np.float64))[keep]
     dz = np.asarray(rec["zbias"].numpy(), np.float64)[keep] + raster * scale
-    return ReceiverPoints(dz=dz, normal=float(values["normal_offset"]) * cam["texel"][keep],
+    return ReceiverPoints(dz=dz, normal=float(values["normal_offset"]) * cam["texel"][keep], cos=cos,
                           filter_var=technique.filter_variance(values) * texel[keep] ** 2,
                           engine_z=cam["z"][keep], engine_texel=cam["texel"][keep],
                           engine_depth_per_unit=cam["depth_per_unit"][keep])
@@ -90,6 +93,8 @@ def camera_at(camera: dict, p: np.ndarray) -> dict:
     >>> r["z"].tolist(), r["texel"].tolist(), r["depth_per_unit"].tolist(), r["inside"].tolist()
     ([10.0, 10.0], [0.1, 0.1], [0.05, 0.05], [True, False])
     """
+    if camera["projection"] == "matrix":
+        return _matrix_camera(camera, p)
     o = np.asarray(camera["position"], np.float64)
     d, right, up = (np.asarray(camera[k], np.float64) for k in ("direction", "right", "up"))
     rel = p - o
@@ -109,6 +114,45 @@ def camera_at(camera: dict, p: np.ndarray) -> dict:
     return {"z": z, "texel": texel, "depth_per_unit": per_unit, "inside": (z > n) & (z < f) & within}
 
 
+def _matrix_camera(camera: dict, p: np.ndarray) -> dict:
+    """:func:`camera_at` for a camera given as a world → clip matrix (row vectors, Babylon.js's
+    convention: clip = [p, 1]·M) whose map stores the depth metric (z_clip + minZ)/(minZ + maxZ):
+    texel sizes and depth per unit by central differences across and along the camera's axis."""
+    M = np.asarray(camera["matrix"], np.float64).reshape(4, 4)
+    n, f, N = float(camera["minZ"]), float(camera["maxZ"]), int(camera["resolution"])
+
+    def clip(q):
+        return np.c_[q, np.ones(len(q))] @ M
+
+    def ndc_metric(q):
+        c = clip(q)
+        return c[:, :2] / c[:, 3:], (c[:, 2] + n) / (n + f)
+
+    c = clip(p)
+    axis = np.cross(M[:3, 0], M[:3, 1])                 # the direction along which clip x and y do not change
+    axis /= np.linalg.norm(axis)
+    e1 = np.cross(axis, (1.0, 0.0, 0.0) if abs(axis[0]) < 0.9 else (0.0, 1.0, 0.0))
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    h = 1e-4 * max(float(np.ptp(p, axis=0).max()), 1e-3)
+    ndc, metric = ndc_metric(p)
+    per_unit = np.abs(ndc_metric(p + h * axis)[1] - ndc_metric(p - h * axis)[1]) / (2 * h)
+    j1 = (ndc_metric(p + h * e1)[0] - ndc_metric(p - h * e1)[0]) / (2 * h)
+    j2 = (ndc_metric(p + h * e2)[0] - ndc_metric(p - h * e2)[0]) / (2 * h)
+    area = np.abs(j1[:, 0] * j2[:, 1] - j1[:, 1] * j2[:, 0])         # NDC area per m² across the axis
+    texel = (2.0 / N) / np.sqrt(np.maximum(area, 1e-30))
+    inside = (c[:, 3] > 0) & (np.abs(ndc) <= 1.0).all(1) & (metric >= 0.0) & (metric <= 1.0)
+    return {"z": metric, "texel": texel, "depth_per_unit": per_unit, "inside": inside}
+
+
+def map_size(frame, source: ShadowMapTechnique, values: dict, engine: EngineTechnique) -> dict:
+    """``{"mapSize": N}``: the engine's map gets as many texels as shadowlab's (its largest over the
+    lights), where the engine declares ``mapSize``; ``{}`` otherwise."""
+    if not any(p.name == "mapSize" for p in engine.params):
+        return {}
+    return {"mapSize": max(map_settings(frame, light.name, values)[0] for light in frame.lights)}
+
+
 def check_pair(source, target) -> None:
     """InputError unless ``target`` is an engine technique that maps from ``source``."""
     if not isinstance(target, EngineTechnique):
@@ -121,10 +165,12 @@ def check_pair(source, target) -> None:
                          f"itself: shadowlab fit SCENE -t {target.name}")
 
 
-def transfer(frame, source: ShadowMapTechnique, values: dict, engine: EngineTechnique, engine_stats: dict) -> dict:
+def transfer(frame, source: ShadowMapTechnique, values: dict, engine: EngineTechnique, engine_values: dict,
+             engine_stats: dict) -> dict:
     """The engine's values that do what ``source`` at ``values`` does on ``frame`` (module docstring).
 
-    ``engine_stats``: the ``stats`` of one engine render on this frame (its shadow cameras).
+    ``engine_values``: the engine's settings the transfer keeps; ``engine_stats``: the ``stats`` of
+    one engine render at them on this frame (its shadow cameras).
     Returns ``{"values": {param: median}, "spread": {param: (p10, p90)}, "points": n}``."""
     check_pair(source, engine)
     cams = shadow_cameras(engine_stats)
@@ -134,7 +180,7 @@ def transfer(frame, source: ShadowMapTechnique, values: dict, engine: EngineTech
     if pts.size == 0:
         raise InputError(f"no receiver point of {frame.scene.name!r} is lit and inside both {source.name}'s light "
                          f"view and {engine.name}'s shadow camera: nothing to transfer")
-    mapped = engine.from_shadowlab(pts)
+    mapped = engine.from_shadowlab(pts, engine_values)
     out = {k: float(np.median(v)) for k, v in mapped.items()}
     spread = {k: (float(np.percentile(v, 10)), float(np.percentile(v, 90))) for k, v in mapped.items()}
     return {"values": engine.clip_values(out), "spread": spread, "points": int(pts.size)}

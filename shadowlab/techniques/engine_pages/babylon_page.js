@@ -11,7 +11,7 @@
 // only the modules used (the whole of @babylonjs/core is ~3400 modules: half a minute to load)
 import { Engine } from '@babylonjs/core/Engines/engine.js';
 import { Scene } from '@babylonjs/core/scene.js';
-import { Vector3 } from '@babylonjs/core/Maths/math.vector.js';
+import { Matrix, Vector3 } from '@babylonjs/core/Maths/math.vector.js';
 import { Color3, Color4 } from '@babylonjs/core/Maths/math.color.js';
 import { UniversalCamera } from '@babylonjs/core/Cameras/universalCamera.js';
 import { Camera } from '@babylonjs/core/Cameras/camera.js';
@@ -30,7 +30,7 @@ import { AppendSceneAsync } from '@babylonjs/core/Loading/sceneLoader.js';
 import '@babylonjs/core/Loading/loadingScreen.js';
 import '@babylonjs/loaders/glTF/2.0/index.js';
 
-const BABYLON = { Engine, Scene, Vector3, Color3, Color4, UniversalCamera, Camera, DirectionalLight, SpotLight,
+const BABYLON = { Engine, Scene, Matrix, Vector3, Color3, Color4, UniversalCamera, Camera, DirectionalLight, SpotLight,
                   ShadowGenerator, CascadedShadowGenerator, StandardMaterial, Material, RenderTargetTexture, Texture,
                   Constants };
 
@@ -203,6 +203,17 @@ async function draw(receive) {
   return await S.rt.readPixels(0, 0, null, true, false, 0, 0, S.W, S.H);
 }
 
+// the generator's shadow camera as the map was rendered with it, for shadowlab's transfer: the
+// world -> clip matrix in shadowlab's (right-handed, W3) coordinates, row vectors as Babylon's, and the
+// depth range of the depth metric (z_clip + minZ) / (minZ + maxZ) that the map stores
+function shadowCamera(gen, light) {
+  const flip = BABYLON.Matrix.Scaling(-1, 1, 1);
+  const m = flip.multiply(gen.getTransformMatrix());
+  const cam = S.scene.activeCamera;
+  return { resolution: gen.getShadowMap().getSize().width, projection: 'matrix', matrix: Array.from(m.m),
+           minZ: light.getDepthMinZ(cam), maxZ: light.getDepthMaxZ(cam) };
+}
+
 async function render(p) {
   const t0 = performance.now();
   const out = [], maps = [];
@@ -225,7 +236,8 @@ async function render(p) {
       v[k] = Math.min(1.0, Math.max(0.0, r));
     }
     const count = type === 'csm' ? gen.numCascades : 1;
-    maps.push(Array.from({ length: count }, () => ({ resolution: gen.getShadowMap().getSize().width })));
+    maps.push(type === 'csm' ? Array.from({ length: count }, () => ({ resolution: gen.getShadowMap().getSize().width }))
+                             : [shadowCamera(gen, light)]);
     gen.dispose();
     [light.shadowMinZ, light.shadowMaxZ] = saved;
     const item = { name: entry.name, vis: b64(v), above_one: bad };
