@@ -119,8 +119,8 @@ def kernel_summary(entries: list) -> dict:
 
 def first_sync(fn) -> str | None:
     """Where ``fn`` first waits for the device (``JitFlag.ForbidSynchronization`` raises there): the
-    innermost line of shadowlab outside the bench, as ``module.py:LINE (function)``; None if it
-    never does."""
+    innermost line of shadowlab outside the bench, as ``module.py:LINE (function)`` (``<lambda>``
+    written ``lambda``, so that Markdown shows it); None if it never does."""
     dr.sync_thread()
     dr.set_flag(dr.JitFlag.ForbidSynchronization, True)
     try:
@@ -133,7 +133,7 @@ def first_sync(fn) -> str | None:
         if not ours:
             return "outside shadowlab"
         f = ours[-1]
-        return f"{os.path.relpath(f.filename, os.path.dirname(_PACKAGE))}:{f.lineno} ({f.name})"
+        return f"{os.path.relpath(f.filename, os.path.dirname(_PACKAGE))}:{f.lineno} ({f.name.strip('<>')})"
     finally:
         dr.set_flag(dr.JitFlag.ForbidSynchronization, False)
     return None
