@@ -76,3 +76,26 @@ def test_maps_are_drjit_arrays_and_the_numpy_copies_agree(frame):
     empty = ~view.hit
     assert (view.depth[empty] == 1.0).all() and (view.slope[empty] == 0.0).all()
     assert view.trans_rgb is None and view.translucent is None
+
+
+def test_a_lookup_in_a_moved_light_camera_reuses_the_kernel(frame):
+    """Projecting points into a map (and the NDC depth of the receiver) reads the camera's values
+    as data too: the lookups of two cascades, or two tiles, are one compiled kernel."""
+    p = frame.gbuffer.p
+    for light, fits in (("sun", [FrustumSlice(0.5, 2.0), FrustumSlice(2.0, 6.0, 0.5)]),
+                        ("spot", [TileRect(-1.0, -1.0, 0.0, 0.0), TileRect(0.0, 0.0, 0.5, 0.5)])):
+        hashes, values = [], []
+        for fit in fits:
+            view = _view(frame, light, fit=fit)
+            rec, ks = _kernels(lambda: _looked_up(view, p))
+            hashes.append(sorted(k["hash"] for k in ks))
+            values.append(rec["u"].numpy())
+        assert hashes[0] == hashes[1] and hashes[0], light
+        assert not np.array_equal(values[0], values[1])
+
+
+def _looked_up(view, p):
+    rec = view.lookup(p)
+    rec["z_decoded"] = view.proj.linear_depth(rec["d"])
+    dr.eval(rec)
+    return rec

@@ -187,6 +187,25 @@ class LightSquare:
 FITS = (SceneSphere, FrustumSlice, TileRect, LightSquare)
 
 
+def opaque_values(kind, *values):
+    """Python floats as opaque Dr.Jit scalars of type ``kind`` (its scalar type for vectors): they
+    enter a kernel as data, so a light camera that moves reuses the compiled kernel. Each equals
+    the literal it replaces, and a division by one is written ``x * dr.rcp(v)``, which is what
+    Dr.Jit makes of a division by a literal: the results keep their bits."""
+    kind = dr.value_t(kind) if dr.depth_v(kind) > 1 else kind
+    return [dr.opaque(kind, float(v)) for v in values]
+
+
+def face_rows(proj, face):
+    """Rows right, up, forward (3 mi.Vector3f) of each point's ``face`` (UInt32): the one face's
+    as opaque values, a cube map's gathered from a table of its faces."""
+    faces = proj.faces
+    if len(faces) == 1:
+        return [mi.Vector3f(*opaque_values(mi.Float, *faces[0].R[r])) for r in range(3)]
+    table = mi.Float([x for f in faces for row in f.R for x in row])
+    return [mi.Vector3f(*[dr.gather(mi.Float, table, face * 9 + 3 * r + c) for c in range(3)]) for r in range(3)]
+
+
 @dataclass(frozen=True)
 class Face:
     origin: tuple       # light camera position (world)
@@ -205,8 +224,15 @@ class Face:
         object.__setattr__(self, "shift", tuple(float(x) for x in self.shift))
 
     def ndc_depth(self, z):
-        """Light-space z -> NDC depth in [0, 1] (numpy or Dr.Jit) with this face's near / far."""
+        """Light-space z -> NDC depth in [0, 1] (numpy or Dr.Jit) with this face's near / far.
+        Dr.Jit: the planes enter the kernel opaquely (:func:`opaque_values`)."""
         n, f = self.near, self.far
+        if isinstance(z, dr.ArrayBase):
+            if self.ortho:
+                n_, w = opaque_values(type(z), n, f - n)
+                return (z - n_) * dr.rcp(w)
+            a, n_ = opaque_values(type(z), f / (f - n), n)
+            return a * (1.0 - n_ / z)
         if self.ortho:
             return (z - n) / (f - n)
         return f / (f - n) * (1.0 - n / z)
@@ -214,6 +240,11 @@ class Face:
     def linear_depth(self, d):
         """NDC depth -> light-space z (inverse of :meth:`ndc_depth`)."""
         n, f = self.near, self.far
+        if isinstance(d, dr.ArrayBase):
+            n_, w, f_ = opaque_values(type(d), n, f - n, f)
+            if self.ortho:
+                return n_ + d * w
+            return n_ / (1.0 - d * w * dr.rcp(f_))
         if self.ortho:
             return n + d * (f - n)
         return n / (1.0 - d * (f - n) / f)
@@ -638,7 +669,8 @@ class LightView:
         one texel at that depth).
         """
         faces = self.proj.faces
-        o = mi.Point3f(*faces[0].origin)
+        f0 = faces[0]
+        o = mi.Point3f(*opaque_values(mi.Float, *f0.origin))
         rel = p - o
         if self.proj.cube:
             ax, ay, az = dr.abs(rel.x), dr.abs(rel.y), dr.abs(rel.z)
@@ -646,33 +678,32 @@ class LightView:
             fy = dr.select(rel.y >= 0, 2, 3)
             fz = dr.select(rel.z >= 0, 4, 5)
             face = mi.UInt32(dr.select((ax >= ay) & (ax >= az), fx, dr.select(ay >= az, fy, fz)))
-            Rf = mi.Float(np.asarray([f.R for f in faces], np.float32).ravel())
-            row = [mi.Vector3f(*[dr.gather(mi.Float, Rf, face * 9 + 3 * r + c) for c in range(3)]) for r in range(3)]
         else:
             face = mi.UInt32(0)
-            R = faces[0].R
-            row = [mi.Vector3f(*R[r]) for r in range(3)]
+        row = face_rows(self.proj, face)
         qx, qy, qz = dr.dot(rel, row[0]), dr.dot(rel, row[1]), dr.dot(rel, row[2])
-        f0 = faces[0]
         N = self.res
         uniform = self.proj.uniform
-        if uniform:  # one set of planes for the map (every cube map): plain Python floats
-            s, near, far, (sx, sy) = f0.scale, f0.near, f0.far, f0.shift
+        if uniform:  # one set of planes for the map (every cube map): opaque scalars
             shifted = f0.shift != (0.0, 0.0)
+            s, near, far, sx, sy = opaque_values(mi.Float, f0.scale, f0.near, f0.far, *f0.shift)
+            texel_k = opaque_values(mi.Float, 2.0 * f0.scale / N if f0.ortho else 2.0 * f0.scale)[0]
         else:        # each face its own: gathered per point
             if any(f.ortho != f0.ortho for f in faces):
                 raise ValueError("a light view mixes orthographic and perspective faces")
             s, near, far, sx, sy = (
                 self.proj.face_param(face, k) for k in ("scale", "near", "far", "shift_x", "shift_y")
             )
+            texel_k = 2.0 * s / N if f0.ortho else 2.0 * s
             shifted = True
+        over_s = (lambda a: a * dr.rcp(s)) if uniform else (lambda a: a / s)  # noqa: E731 - as a literal divides
         if f0.ortho:
-            x, y = qx / s, qy / s
-            texel = mi.Float(2.0 * s / N)
+            x, y = over_s(qx), over_s(qy)
+            texel = mi.Float(texel_k)
         else:
             inv = dr.rcp(dr.maximum(qz, 1e-12))
-            x, y = qx * inv / s, qy * inv / s
-            texel = 2.0 * s * qz / N
+            x, y = over_s(qx * inv), over_s(qy * inv)
+            texel = texel_k * qz / N
         if shifted:
             x, y = x - sx, y - sy
         u = (x + 1.0) * 0.5 * N

@@ -470,7 +470,7 @@ class CSM(Technique):
         vis = dr.select(w_eff > 0.0, dr.lerp(A, B, w_eff), A)
         shadowed = sel >= 0
         vis = dr.select(shadowed, vis, 1.0)
-        tex_tab = mi.Float(np.asarray(texel + [texel[-1]], np.float32))
+        tex_tab = mi.Float([float(t) for t in texel + [texel[-1]]])
         t_a = dr.gather(mi.Float, tex_tab, mi.UInt32(dr.maximum(sel, 0)))
         t_b = dr.gather(mi.Float, tex_tab, mi.UInt32(dr.minimum(dr.maximum(sel + 1, 0), N)))
         t_sel = dr.select(shadowed, dr.lerp(t_a, t_b, w_eff), 0.0)

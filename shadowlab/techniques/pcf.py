@@ -327,8 +327,6 @@ class PCF(ShadowMapTechnique):
         if pattern == "rotated_poisson":
             theta = rotation_angle(dr.width(rec["u"]), int(values["seed"]))
             rot = dr.sincos(theta)[::-1]                           # (cos θ, sin θ)
-        for name in ("depth", "slope"):                            # upload before the loop records
-            view.dr(name)
         g = receiver_plane_gradient(view, rec, rec["ng"], RECEIVER_PLANE_MIN_COS) if values["receiver_plane"] else None
         vis = _accumulate(view, rec, bias, table, count, s, rot, bilinear, g)
         return dr.clip(vis, 0.0, 1.0)

@@ -100,9 +100,9 @@ from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from ..errors import InputError
+from ..render.lightview import face_rows, opaque_values
 from ..render.tiles import TiledView
 from .base import FromScene, LightResult, Param, Technique, needs_mitsuba_geometry, param_table_markdown, register
 
@@ -267,8 +267,8 @@ def to_light(view, p):
     """Unit direction from ``p`` to the light (the light camera's centre, or −forward)."""
     f0 = view.proj.faces[0]
     if f0.ortho:
-        return mi.Vector3f(*[-float(x) for x in f0.R[2]])
-    return dr.normalize(mi.Point3f(*[float(x) for x in f0.origin]) - p)
+        return mi.Vector3f(*opaque_values(mi.Float, *[-x for x in f0.R[2]]))
+    return dr.normalize(mi.Point3f(*opaque_values(mi.Float, *f0.origin)) - p)
 
 
 def receiver(frame, view, bias: Bias) -> dict:
@@ -322,14 +322,7 @@ def grazing_drop(rec, ix, iy):
 
 def _light_space(view, rec, vec):
     """World vector ``vec`` in the light space of each receiver's face (rows right, up, forward)."""
-    faces = view.proj.faces
-    if view.proj.cube:
-        Rf = mi.Float(np.asarray([f.R for f in faces], np.float32).ravel())
-        rows = [mi.Vector3f(*[dr.gather(mi.Float, Rf, rec["face"] * 9 + 3 * r + c) for c in range(3)])
-                for r in range(3)]
-    else:
-        rows = [mi.Vector3f(*faces[0].R[r]) for r in range(3)]
-    return [dr.dot(vec, r) for r in rows]
+    return [dr.dot(vec, r) for r in face_rows(view.proj, rec["face"])]
 
 
 def receiver_plane_gradient(view, rec, ng, min_cos: float = 0.0):
@@ -344,7 +337,8 @@ def receiver_plane_gradient(view, rec, ng, min_cos: float = 0.0):
     |cos| < ``min_cos`` with the direction to the light gets (0, 0): its plane, extrapolated across
     the taps, would reach far past the surfaces next to it."""
     f0 = view.proj.faces[0]
-    N, near, far, s = view.res, f0.near, f0.far, f0.scale
+    N = view.res
+    near, s = opaque_values(mi.Float, f0.near, f0.scale)
     nx, ny, nz = _light_space(view, rec, mi.Vector3f(ng))
     x = 2.0 * rec["u"] / N - 1.0
     y = 1.0 - 2.0 * rec["v"] / N
@@ -353,12 +347,12 @@ def receiver_plane_gradient(view, rec, ng, min_cos: float = 0.0):
         return dr.select(dr.abs(c) < eps, dr.select(c < 0, -eps, eps), c)
 
     if f0.ortho:
-        den = safe(nz, 1e-6) * (far - near)
+        den = safe(nz, 1e-6) * opaque_values(mi.Float, f0.far - f0.near)[0]
         gx, gy = -nx * s / den, -ny * s / den
     else:
         z = rec["z"]
         c = safe(nx * x * s * z + ny * y * s * z + nz * z, 1e-6 * dr.maximum(dr.abs(z), near))
-        k = -far * near / (far - near) * s
+        k = opaque_values(mi.Float, -f0.far * f0.near / (f0.far - f0.near) * f0.scale)[0]
         gx, gy = k * nx / c, k * ny / c
     if min_cos > 0.0:
         if f0.ortho:
