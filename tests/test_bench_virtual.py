@@ -7,6 +7,7 @@ import math
 import pytest
 
 from shadowlab.bench import virtual
+from shadowlab.techniques.virtual_maps import COARSE
 
 XI_KEYS = [str(x) for x in virtual.XIS]
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -56,10 +57,12 @@ def test_a_larger_xi_never_makes_more_tiles(bench):
 def test_tile_memory_follows_the_texture_modes(bench):
     j = bench["json"]
     t, ov = j["config"]["t_max"], 1                      # fvsm's default overlap
+    coarse = 4 * min(t, COARSE) ** 2                    # the fallback's coarse tile, where one is needed
     for row in j["cost"]["fvsm"].values():
         mm = row["memory_modes"]
-        assert mm["subrect"] == 4 * (t + 2 * ov) ** 2
-        assert mm["pow2"] <= _pow2_bound(t, ov)
+        extra = mm["subrect"] - 4 * (t + 2 * ov) ** 2
+        assert extra in (0, coarse)
+        assert mm["pow2"] - extra <= _pow2_bound(t, ov)
         assert row["memory_bytes"] == mm["pow2"]         # the bench's fvsm uses pow2 textures
         assert row["tiles"] <= j["cost"]["vtsm"]["tiles"] == j["cost"]["grid"] ** 2
     assert j["cost"]["vtsm"]["memory_bytes"] == 4 * t * t

@@ -22,7 +22,7 @@ from shadowlab.techniques.virtual_maps import (GRIDS, SMTMM, bucket, cell_demand
 from outdoor_scene import CAMERA, OUTDOOR as _OUTDOOR, SHAPES, SUN  # noqa: E402
 
 OUTDOOR = {**_OUTDOOR, "camera": {**CAMERA, "resolution": [128, 72]}}
-SMALL = {"t_max": 256, "grid": 8}
+SMALL = {"t_max": 256, "grid": 8, "warp": "ortho"}   # the closed forms below are the orthographic map's
 
 
 def _frame(scene: dict):
@@ -125,7 +125,7 @@ def _expected_levels(frame, face):
 def test_demand_quantisation_matches_its_closed_form_on_a_plane(mitsuba_backend, camera, direction):
     frame = _frame(_plane_scene(camera, direction))
     t = base.get("fvsm")
-    values = t.resolve({"grid": 4, "t_max": 256})
+    values = t.resolve({"grid": 4, "t_max": 256, "warp": "ortho"})
     face = t.base(frame, frame.lights[0], values).faces[0]
     d = t.demand(frame, t.base(frame, frame.lights[0], values), values)
     dx, dy = _expected_levels(frame, face)
@@ -315,7 +315,7 @@ def test_tiles_rendered_and_applied_a_wavefront_at_a_time_give_the_same_bits(out
 def test_vtsm_is_one_focused_map_of_grid_times_t_max_texels_bit_for_bit(outdoor):
     """n × n tiles of t² hold exactly the texels of one n·t map of the same light camera: VTSM
     equals csm with one cascade (the same sphere fit, snapped) and a hard filter at n·t texels."""
-    v = base.get("vtsm").render(outdoor, {"grid": 4, "t_max": 64, "focus": "sphere"})
+    v = base.get("vtsm").render(outdoor, {"grid": 4, "t_max": 64, "focus": "sphere", "warp": "ortho"})
     c = base.get("csm").render(outdoor, {"cascades": 1, "filter": "hard", "resolution": 256, "blend": 0.0,
                                          "grazing_slope_bias": 0.0})      # tiles have no grazing term
     assert np.array_equal(v.visibility["sun"].numpy(), c.visibility["sun"].numpy())
@@ -332,7 +332,8 @@ def test_a_large_xi_is_one_ordinary_focused_map(outdoor):
     r = base.get("fvsm").render(outdoor, {**p, "xi": 16})
     st = r.stats["lights"]["sun"]
     assert st["tiles"] == 1 and st["texels"] == 256 * 256 and st["demand"][0] >= 8
-    one = base.get("vtsm").render(outdoor, {"t_max": 256, "grid": 1, "snap": False, "focus": "sphere"})
+    one = base.get("vtsm").render(outdoor, {"t_max": 256, "grid": 1, "snap": False, "focus": "sphere",
+                                            "warp": "ortho"})
     assert np.array_equal(r.visibility["sun"].numpy(), one.visibility["sun"].numpy())
     # and that map is hard's on the same focused light camera, up to float32 texel-ray rounding
     hard = base.get("hard")

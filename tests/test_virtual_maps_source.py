@@ -18,7 +18,8 @@ BARS = [{"name": f"bar{i}", "type": "cube", "translate": [0.0, 1.5, z], "scale":
         for i, z in enumerate((-2.0, 0.0, 2.0))]
 #: a coarse SMTMM over a fine grid: cells between the sampled pixels get no tile, so tile borders
 #: run through the shadows of the bars
-SEAMY = {"smtmm_scale": 8, "grid": 32, "t_max": 64, "apply": "full", "focus": "visible", "uncovered": "lit"}
+SEAMY = {"smtmm_scale": 8, "grid": 32, "t_max": 64, "apply": "full", "focus": "visible", "uncovered": "lit",
+         "warp": "ortho"}
 
 
 @pytest.fixture(scope="module")

@@ -144,7 +144,7 @@ def _focus_params(default: str) -> tuple:
         ),
         Param(
             "warp",
-            "ortho",
+            "lispsm",
             "choice",
             choices=WARPS,
             source="[Giegl 2007, §5], [Wimmer 2004, §4–5]",
@@ -923,7 +923,9 @@ class FVSM(VirtualMap):
 
     def demand(self, frame, base, values, warp=None) -> dict:
         """The per-point demand (Dr.Jit, at :attr:`~shadowlab.render.frame.FrameContext.own_screen`'s
-        points) and the SMTMM, SMTG, pyramid and tiles of one light."""
+        points) and the SMTMM, SMTG, pyramid and tiles of one light, in the square of ``warp``
+        (None: the one ``values`` ask for, :meth:`warp`)."""
+        warp = warp if warp is not None else self.warp(frame, values, base)
         scr = frame.own_screen
         f0 = base.faces[0]
         dx, dy, x, y = footprint(scr, f0, warp)
