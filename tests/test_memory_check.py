@@ -93,3 +93,12 @@ def test_a_gate_that_does_not_fit_exits_3_before_any_gate_runs(tmp_path, capsys,
     err = capsys.readouterr().err
     assert rc == 3 and "needs about" in err, err
     assert not (tmp_path / "g").exists() and sorted(p.name for p in (tmp_path / "store").iterdir()) == ["gates.toml"]
+
+
+def test_bench_frames_checks_every_scene_before_it_measures(tmp_path, capsys, monkeypatch, mitsuba_backend):
+    # the CPU's own figure is tested above; here the device is made small, so the refusal is certain
+    monkeypatch.setattr(memory, "free_memory", lambda: (1 << 20, "free on a test device"))
+    rc = cli.main(["bench", "--only", "frames", "--size", "64x36", "--out", str(tmp_path / "b")])
+    err = capsys.readouterr().err
+    assert rc == 3 and "needs about" in err and "free on a test device" in err and "a smaller --size" in err, err
+    assert not (tmp_path / "b").exists()

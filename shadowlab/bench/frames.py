@@ -319,7 +319,7 @@ def run(out: Path, quick: bool = False, size=None, plan=PLAN) -> Path:
            "quick": quick, "size": list(size), "repeats": 2 if quick else REPEATS}
     for scene, only in plan:                                  # exit 3 before any scene is measured
         sc = load_scene(scene, size)
-        check_memory(sc.spec, {n: {} for n in techniques_on(sc.spec, only)})
+        check_memory(sc.spec, {n: {} for n in techniques_on(sc.spec, only)}, size_option="--size")
     res["scenes"] = bench(size, plan, res["repeats"])
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -85,10 +85,10 @@ def frame_list(spec, frame: int | None = None, frames=None) -> list[int] | None:
     return list(range(ab[0], ab[1] + 1))
 
 
-def check_memory(spec, techniques: dict, *, ss: int = 1) -> Need:
+def check_memory(spec, techniques: dict, *, ss: int = 1, size_option: str = "--resolution") -> Need:
     """Refuse before any work (EnvironmentProblem, exit 3) a frame of ``spec`` (at its camera's
     resolution) rendered by ``techniques`` ({name: parameter overrides}) that needs more memory than
     the device has free, naming both and the fix (:func:`shadowlab.render.memory.check_fits`)."""
     W, H = spec.camera.resolution
     values = {n: tbase.get(n).resolve(o) for n, o in techniques.items()}
-    return check_fits(spec, values, ss=ss, what=f"a frame of scene {spec.name!r} at {W}×{H}")
+    return check_fits(spec, values, ss=ss, what=f"a frame of scene {spec.name!r} at {W}×{H}", size_option=size_option)

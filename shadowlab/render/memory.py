@@ -137,10 +137,12 @@ def _gib(b: int) -> str:
     return f"{b / GiB:.1f} GiB"
 
 
-def check_fits(spec, techniques: dict, *, ss: int = 1, what: str = "a frame", free=None) -> Need:
+def check_fits(spec, techniques: dict, *, ss: int = 1, what: str = "a frame", free=None,
+               size_option: str = "--resolution") -> Need:
     """Refuse (EnvironmentProblem, exit 3) a frame of ``spec`` rendered by ``techniques`` ({name:
     resolved values}) that needs more than the memory free (``free``: (bytes, where); default
-    :func:`free_memory`). The message names both and the fix. Returns the :class:`Need`."""
+    :func:`free_memory`). The message names both and the fix (``size_option``: the option that sets
+    the frame's size). Returns the :class:`Need`."""
     need = frame_need(spec, techniques, ss=ss)
     avail, where = free if free is not None else free_memory()
     if need.total <= avail:
@@ -155,6 +157,6 @@ def check_fits(spec, techniques: dict, *, ss: int = 1, what: str = "a frame", fr
         if side:
             fixes.append(f"a smaller map (--set {need.technique}.resolution={max(64, side // 4)}, or the lights' "
                          "shadow_map)")
-    fixes.append(f"a smaller --resolution (e.g. {max(1, W // 4)}x{max(1, H // 4)})")
+    fixes.append(f"a smaller {size_option} (e.g. {max(1, W // 4)}x{max(1, H // 4)})")
     raise EnvironmentProblem(f"{what} needs about {_gib(need.total)} ({', '.join(parts)}) but only {_gib(avail)} is "
                              f"{where}; use {' or '.join(fixes)}")
