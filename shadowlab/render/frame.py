@@ -25,6 +25,7 @@ from ..scene.twins import sdf_of
 from . import sdf_gbuffer
 from .camera import Camera
 from .gbuffer import GBuffer, gbuffer, vec_numpy
+from .gbuffer import evaluate as evaluate_gbuffer
 from .lightview import LightView, SceneSphere, light_view
 from .screen import Screen
 from .shading import unshadowed
@@ -194,9 +195,11 @@ def make_frame(scene, ss: int = 1, u_strata: int = 16, seed: int = 0) -> FrameCo
     see the module docstring)."""
     sdf = sdf_of(scene)
     if scene.kind == "sdf":
-        gb = sdf_gbuffer.cone_gbuffer(scene, sdf, ss=ss)
+        gb = sdf_gbuffer.cone_gbuffer(scene, sdf, ss=ss, evaluated=False)
         U = {l.name: sdf_gbuffer.unshadowed(scene, gb, l.name, k=u_strata, seed=seed) for l in scene.spec.lights}
+        sdf_gbuffer.evaluate(gb, *U.values())
     else:
-        gb = gbuffer(scene, ss=ss)
+        gb = gbuffer(scene, ss=ss, evaluated=False)
         U = {l.name: unshadowed(scene, gb, l.name, k=u_strata, seed=seed) for l in scene.spec.lights}
+        evaluate_gbuffer(gb, *U.values())
     return FrameContext(scene=scene, gbuffer=gb, unshadowed=U, sdf=sdf)

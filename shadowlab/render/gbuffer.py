@@ -8,24 +8,31 @@ reshaping any flat array to (H, W, s²) and averaging the last axis gives pixel 
 Alpha-tested casters ([Buljan 2020, §2.4]): in a scene with ``scene.has_alpha``
 camera rays continue through transparent texels (alpha < cutoff), so a pixel shows what lies
 behind a leaf card's holes; other scenes cast one ``ray_intersect`` as before.
+
+No host round trip: the film coordinates are made on the device (:func:`film_uv`) and every
+field stays a Dr.Jit array; the numpy images that reports and metrics read (``mask``,
+``view_depth``, ``z_depth``, ``albedo``, ``shape_id``) are read back on first use, outside a
+frame's own work.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from ..scene.build import transparent
-from .camera import Camera, pixel_uv
+from .camera import Camera
 
 
 @dataclass
 class GBuffer:
-    """Per shading point: Dr.Jit arrays (``si`` is Mitsuba's SurfaceInteraction3f, kept for
-    shading and shadow rays) plus numpy copies of what reports and metrics read."""
+    """Per shading point, flat Dr.Jit arrays (``si`` is Mitsuba's SurfaceInteraction3f, kept for
+    shading and shadow rays); the numpy images (H, W, ss²[, 3]) reports and metrics read are
+    properties, read back once when first asked for."""
 
     width: int
     height: int
@@ -36,12 +43,42 @@ class GBuffer:
     n: object               # mi.Normal3f shading normal (world)
     ng: object              # mi.Normal3f geometric normal (world), facing the camera
     valid: object           # mi.Bool: a non-emitting surface was hit
-    view_depth: np.ndarray  # (H, W, ss²) distance from the camera position along the ray
-    z_depth: np.ndarray     # (H, W, ss²) depth along the camera's forward axis
-    albedo: np.ndarray      # (H, W, ss², 3)
-    mask: np.ndarray        # (H, W, ss²) bool
-    shape_id: np.ndarray    # (H, W, ss²) int32, -1 = miss
+    distance: object        # mi.Float distance from the camera position along the ray, 0 where not valid
+    forward_depth: object   # mi.Float depth along the camera's forward axis, 0 where not valid
+    reflectance: object     # mi.Color3f diffuse albedo, 0 where not valid
+    shape: object           # mi.Int32 index into the scene's shapes, -1 = miss
     view: object = None     # the scene's camera (spec) the rays came from
+
+    def _image(self, a, dtype, channels: int = 0) -> np.ndarray:
+        a = np.asarray(a.numpy(), dtype)
+        if channels:
+            return np.ascontiguousarray(a.T).reshape(self.height, self.width, self.ss * self.ss, channels)
+        return a.reshape(self.height, self.width, self.ss * self.ss)
+
+    @cached_property
+    def mask(self) -> np.ndarray:
+        """(H, W, ss²) bool: ``valid``."""
+        return self._image(self.valid, bool)
+
+    @cached_property
+    def view_depth(self) -> np.ndarray:
+        """(H, W, ss²) float32: ``distance``."""
+        return self._image(self.distance, np.float32)
+
+    @cached_property
+    def z_depth(self) -> np.ndarray:
+        """(H, W, ss²) float32: ``forward_depth``."""
+        return self._image(self.forward_depth, np.float32)
+
+    @cached_property
+    def albedo(self) -> np.ndarray:
+        """(H, W, ss², 3) float32: ``reflectance``."""
+        return self._image(self.reflectance, np.float32, 3)
+
+    @cached_property
+    def shape_id(self) -> np.ndarray:
+        """(H, W, ss²) int32: ``shape``."""
+        return self._image(self.shape, np.int32)
 
     @property
     def size(self) -> int:
@@ -64,8 +101,11 @@ def vec_numpy(v) -> np.ndarray:
     return np.asarray(v.numpy()).T
 
 
-def gbuffer(scene, ss: int = 1) -> GBuffer:
+def gbuffer(scene, ss: int = 1, *, evaluated: bool = True) -> GBuffer:
     """Cast camera rays through pixel (sub-)centres; see module docstring for the layout.
+    ``evaluated=False`` leaves the arrays lazy for a caller that evaluates them together with
+    more work (:func:`evaluate`) while ``scene`` is alive: the kernel calls Mitsuba's ray tracer
+    of the scene, which the lazy arrays do not keep alive.
 
     >>> from shadowlab.scene import load
     >>> gb = gbuffer(load("contact", resolution=(8, 6)))
@@ -76,9 +116,7 @@ def gbuffer(scene, ss: int = 1) -> GBuffer:
     """
 
     W, H = scene.resolution
-    uv = pixel_uv(W, H, ss)
-    film_uv = mi.Point2f(uv[:, 0].astype(np.float32), uv[:, 1].astype(np.float32))
-    ray, _ = scene.sensor.sample_ray(0.0, 0.5, film_uv, mi.Point2f(0.5))
+    ray, _ = scene.sensor.sample_ray(0.0, 0.5, film_uv(W, H, ss), mi.Point2f(0.5))
     si = scene.mi_scene.ray_intersect(ray)
     if getattr(scene, "has_alpha", False):
         si = _through_alpha(scene.mi_scene, si, ray)
@@ -91,24 +129,41 @@ def gbuffer(scene, ss: int = 1) -> GBuffer:
     n = dr.select(dr.dot(n, ray.d) > 0, -n, n)
     cam = Camera.from_scene(scene)
     cam_o = mi.Point3f(*[float(x) for x in cam.position])
-    dist = dr.norm(si.p - cam_o)
-    zd = dr.dot(si.p - cam_o, mi.Vector3f(*[float(x) for x in cam.forward]))
+    dist = dr.select(valid, dr.norm(si.p - cam_o), 0.0)
+    zd = dr.select(valid, dr.dot(si.p - cam_o, mi.Vector3f(*[float(x) for x in cam.forward])), 0.0)
     bsdf = si.bsdf(ray)
     alb = bsdf.eval_diffuse_reflectance(si, valid) if hasattr(bsdf, "eval_diffuse_reflectance") else mi.Color3f(0.5)
+    alb = dr.select(valid, alb, 0.0)
     shapes = scene.mi_scene.shapes_dr()
     # shape index: compare the hit shape pointer against each shape (few shapes, fixed loop)
     sid = dr.full(mi.Int32, -1, dr.width(ray))
     for idx in range(len(scene.shape_names)):
         sid = dr.select(hit & (si.shape == dr.gather(type(shapes), shapes, idx)), idx, sid)
-    dr.eval(si, valid, ng, n, dist, zd, alb, sid)
-    shp = (H, W, ss * ss)
-    mask = valid.numpy().reshape(shp)
-    vd = np.where(mask, dist.numpy().reshape(shp), 0).astype(np.float32)
-    zz = np.where(mask, zd.numpy().reshape(shp), 0).astype(np.float32)
-    albedo = vec_numpy(alb).reshape(*shp, 3).astype(np.float32) * mask[..., None]
-    return GBuffer(width=W, height=H, ss=ss, si=si, rays=ray, p=si.p, n=n, ng=ng, valid=valid,
-                   view_depth=vd, z_depth=zz, albedo=albedo, mask=mask,
-                   shape_id=sid.numpy().reshape(shp).astype(np.int32), view=scene.spec.camera)
+    gb = GBuffer(width=W, height=H, ss=ss, si=si, rays=ray, p=si.p, n=n, ng=ng, valid=valid, distance=dist,
+                 forward_depth=zd, reflectance=alb, shape=sid, view=scene.spec.camera)
+    if evaluated:
+        evaluate(gb)
+    return gb
+
+
+def film_uv(width: int, height: int, ss: int = 1):
+    """Film coordinates of pixel (sub-)centres in the G-buffer's point order (mi.Point2f), made on
+    the device: the values of :func:`shadowlab.render.camera.pixel_uv` rounded to float32,
+    computed as one correctly rounded division (2·(x·s + i) + 1) / (2·W·s) of exact integers (the
+    divisors are opaque: Dr.Jit turns a division by a literal into a product with its reciprocal,
+    which differs in the last bit)."""
+    s = int(ss)
+    k = dr.arange(mi.UInt32, width * height * s * s)
+    pix, sub = k // (s * s), k % (s * s)
+    u = mi.Float(2 * ((pix % width) * s + sub % s) + 1)
+    v = mi.Float(2 * ((pix // width) * s + sub // s) + 1)
+    return mi.Point2f(u / dr.opaque(mi.Float, 2 * width * s), v / dr.opaque(mi.Float, 2 * height * s))
+
+
+def evaluate(gb: GBuffer, *more) -> None:
+    """Evaluate the G-buffer's arrays (and ``more``, e.g. the unshadowed light, in the same
+    kernel): the frame's one stage boundary."""
+    dr.eval(gb.si, gb.valid, gb.ng, gb.n, gb.distance, gb.forward_depth, gb.reflectance, gb.shape, *more)
 
 
 MAX_ALPHA_LAYERS = 64  # transparent texels a camera ray may pass before it stops (then: a miss)

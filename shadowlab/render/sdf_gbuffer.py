@@ -33,7 +33,7 @@ import numpy as np
 
 from ..sdf.trace import cone_trace, sphere_trace
 from .camera import Camera
-from .gbuffer import GBuffer, vec_numpy
+from .gbuffer import GBuffer, film_uv
 from .shading import seed_hash
 
 
@@ -55,14 +55,14 @@ def pixel_tan_alpha(camera, ss: int = 1) -> float:
     return Camera.from_spec(camera).pixel_tan_alpha(ss)
 
 
-def cone_gbuffer(scene, sdf, ss: int = 1, *, eps: float = 1e-4, i_max: int = 512) -> SDFGBuffer:
-    """Cone-traced G-buffer of ``sdf`` seen by ``scene``'s camera (see the module docstring)."""
+def cone_gbuffer(scene, sdf, ss: int = 1, *, eps: float = 1e-4, i_max: int = 512,
+                 evaluated: bool = True) -> SDFGBuffer:
+    """Cone-traced G-buffer of ``sdf`` seen by ``scene``'s camera (see the module docstring);
+    ``evaluated=False``: lazy, for a caller that evaluates it with more work (:func:`evaluate`)."""
 
     W, H = scene.resolution
     cam = Camera.from_scene(scene)
-    uv = cam.pixel_uv(ss)
-    film_uv = mi.Point2f(uv[:, 0].astype(np.float32), uv[:, 1].astype(np.float32))
-    ray, _ = scene.sensor.sample_ray(0.0, 0.5, film_uv, mi.Point2f(0.5))
+    ray, _ = scene.sensor.sample_ray(0.0, 0.5, film_uv(W, H, ss), mi.Point2f(0.5))
     t_max = float(np.linalg.norm(cam.position - np.asarray(scene.center)) + scene.radius) * 1.01 + 1e-3
     ta = cam.pixel_tan_alpha(ss)
     o, d = mi.Vector3f(ray.o), mi.Vector3f(ray.d)
@@ -91,8 +91,9 @@ def cone_gbuffer(scene, sdf, ss: int = 1, *, eps: float = 1e-4, i_max: int = 512
         alb = dr.select(closer, mi.Color3f(*prim.albedo), alb)
     cam_p = mi.Vector3f(*(float(x) for x in cam.position))
     fwd = mi.Vector3f(*(float(x) for x in cam.forward))
-    dist = dr.norm(p - cam_p)
-    zd = dr.dot(p - cam_p, fwd)
+    dist = dr.select(hit, dr.norm(p - cam_p), 0.0)
+    zd = dr.select(hit, dr.dot(p - cam_p, fwd), 0.0)
+    alb = dr.select(hit, alb, 0.0)
     si = dr.zeros(mi.SurfaceInteraction3f, dr.width(p))
     si.p = mi.Point3f(p)
     si.n = mi.Normal3f(n)
@@ -100,15 +101,18 @@ def cone_gbuffer(scene, sdf, ss: int = 1, *, eps: float = 1e-4, i_max: int = 512
     si.t = dr.select(hit, t, dr.inf)
     si.wi = si.to_local(-d)
     p_s, n_s = mi.Point3f(p_s), mi.Normal3f(n_s)
-    dr.eval(si, hit, radius, p_s, n_s, sid, alb, dist, zd, its)
-    shp = (H, W, ss * ss)
-    mask = hit.numpy().reshape(shp)
-    return SDFGBuffer(width=W, height=H, ss=ss, si=si, rays=ray, p=si.p, n=si.n, ng=si.n, valid=hit,
-                      view_depth=np.where(mask, dist.numpy().reshape(shp), 0).astype(np.float32),
-                      z_depth=np.where(mask, zd.numpy().reshape(shp), 0).astype(np.float32),
-                      albedo=vec_numpy(alb).reshape(*shp, 3).astype(np.float32) * mask[..., None],
-                      mask=mask, shape_id=sid.numpy().reshape(shp).astype(np.int32),
-                      radius=radius, t=t, p_surface=p_s, n_surface=n_s, iterations=its, tan_alpha=ta)
+    gb = SDFGBuffer(width=W, height=H, ss=ss, si=si, rays=ray, p=si.p, n=si.n, ng=si.n, valid=hit,
+                    distance=dist, forward_depth=zd, reflectance=alb, shape=sid,
+                    radius=radius, t=t, p_surface=p_s, n_surface=n_s, iterations=its, tan_alpha=ta)
+    if evaluated:
+        evaluate(gb)
+    return gb
+
+
+def evaluate(gb: SDFGBuffer, *more) -> None:
+    """Evaluate the cone-traced G-buffer's arrays (and ``more`` in the same kernel)."""
+    dr.eval(gb.si, gb.valid, gb.radius, gb.t, gb.p_surface, gb.n_surface, gb.shape, gb.reflectance, gb.distance,
+            gb.forward_depth, gb.iterations, *more)
 
 
 def unshadowed(scene, gb: SDFGBuffer, light_name: str, k: int = 16, seed: int = 0):
@@ -121,11 +125,8 @@ def unshadowed(scene, gb: SDFGBuffer, light_name: str, k: int = 16, seed: int = 
     n = gb.size
     idx = dr.arange(mi.UInt32, n)
     rng = mi.PCG32(n, dr.opaque(mi.UInt64, seed_hash(seed, 0xFFFF)), mi.UInt64(idx))
-    alb = mi.Color3f(*(mi.Float(np.ascontiguousarray(gb.albedo.reshape(-1, 3)[:, c])) for c in range(3)))
-    U = _unshadowed_loop(scene.emitters[light_name], gb.si, gb.valid, alb, rng, mi.UInt32(k))
-    U = dr.select(gb.valid, U / float(k * k), 0.0)
-    dr.eval(U)
-    return U
+    U = _unshadowed_loop(scene.emitters[light_name], gb.si, gb.valid, gb.reflectance, rng, mi.UInt32(k))
+    return dr.select(gb.valid, U / float(k * k), 0.0)
 
 
 @dr.syntax

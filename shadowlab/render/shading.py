@@ -242,13 +242,12 @@ def light_samples(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False
 
 def unshadowed(scene, gbuffer, light_name: str, k: int = 16, seed: int = 0):
     """Unshadowed outgoing radiance U_L at every G-buffer point (flat mi.Color3f), estimated
-    with k×k stratified emitter samples (a delta light needs and gets one)."""
+    with k×k stratified emitter samples (a delta light needs and gets one); not evaluated
+    (``make_frame`` evaluates every light's with the G-buffer)."""
     spec = scene.spec.light(light_name)
     k = 1 if spec.is_delta else k
     f, _, _, _ = sample_light(scene, gbuffer.si, scene.emitters[light_name], k, seed, 0xFFFF, False)
-    U = dr.select(gbuffer.valid, f / float(k * k), 0.0)
-    dr.eval(U)
-    return U
+    return dr.select(gbuffer.valid, f / float(k * k), 0.0)
 
 
 def compose(frame, visibility: dict, colour: dict | None = None) -> np.ndarray:
