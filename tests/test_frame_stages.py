@@ -1,11 +1,23 @@
 """A frame without host round trips: ``make_frame`` builds the G-buffer and the unshadowed light on
-the device and evaluates them once; what used to go through numpy inside a frame (film
-coordinates) gives the same bits on the device."""
+the device and evaluates them once; a render evaluates every light together and reads its stats
+back once; what used to go through numpy inside a frame (film coordinates) gives the same bits on
+the device."""
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pytest
+
+from shadowlab.techniques.base import LightResult, Pooled, Technique, device_count, device_total, to_host
+
+
+@pytest.fixture(scope="module")
+def two(mitsuba_backend):
+    from shadowlab.render.frame import make_frame
+    from shadowlab.scene import load
+    return make_frame(load("two_lights", resolution=(48, 32)))
 
 
 def _jit_kernels(fn):
@@ -54,3 +66,66 @@ def test_make_frame_is_one_kernel_and_reads_nothing_back(mitsuba_backend):
     names = fr.scene.shape_names
     assert np.all(gb.shape_id.ravel()[valid] >= 0) and gb.shape_id.max() < len(names)
     assert all(isinstance(U, mi.Color3f) for U in fr.unshadowed.values())
+
+
+class Two(Technique):
+    """Visibility = clip(x + shift), no evaluation of its own; stats left on the device."""
+
+    name = "two_stage_toy"
+
+    def render_light(self, frame, light, values, ctx):
+        import drjit as dr
+        gb = frame.gbuffer
+        x = mi_x(gb) + (0.25 if light.name == frame.lights[0].name else -0.25)
+        act = gb.valid & (x > 0.0)
+        v = dr.clip(x + 0.5, 0.0, 1.0)
+        lit = Pooled(device_total(dr.select(act, dr.floor(v * 4.0), 0.0)), device_count(act))
+        return LightResult(v, {"x": x}, active=act, stats={"points": device_count(gb.valid), "lit": lit},
+                           counts={"active": device_count(act)})
+
+    def light_stats(self, frame, light, values, ctx, result):
+        return {"active": result.counts["active"] + 0.5}
+
+
+def mi_x(gb):
+    import mitsuba as mi
+    return mi.Vector3f(gb.p).x
+
+
+def test_a_render_is_one_stage_for_every_light_and_one_read_back(two):
+    """Both lights' visibility and AOVs come from one kernel; device stats come back as Python
+    numbers (pooled over lights like host ones); AOV images are read when first asked for and
+    pickle as a plain dict."""
+    t = Two()
+    t.render(two)
+    r, jit = _jit_kernels(lambda: t.render(two))
+    gb = two.gbuffer
+    assert len([k for k in jit if k["size"] == gb.size]) == 1       # stats and counts reduced in it
+    valid = gb.valid.numpy()
+    tot = cnt = 0
+    for n in r.visibility:
+        st = r.stats["lights"][n]
+        assert type(st["points"]) is int and st["points"] == int(valid.sum())
+        v = r.visibility[n].numpy()
+        act = valid & (np.asarray(gb.p.numpy())[0] + (0.25 if n == two.lights[0].name else -0.25) > 0)
+        q = np.floor(v[act] * np.float32(4.0))
+        tot, cnt = tot + float(q.sum()), cnt + int(act.sum())
+        assert type(st["lit"]) is float and st["lit"] == q.sum() / act.sum()
+        assert st["active"] == act.sum() + 0.5                      # counts reach light_stats as numbers
+    assert r.stats["lit"]["all"] == tot / cnt
+    keys = list(r.aovs)
+    img = r.aovs[keys[0]]
+    assert img.shape == (32, 48) and r.aovs[keys[0]] is img
+    copy = pickle.loads(pickle.dumps(r.aovs))
+    assert type(copy) is dict and list(copy) == keys and all(np.array_equal(copy[k], r.aovs[k]) for k in keys)
+
+
+def test_to_host_reads_every_device_value_once(mitsuba_backend):
+    import drjit as dr
+    import mitsuba as mi
+    x = dr.arange(mi.Float, 10)
+    tree = {"a": dr.count(x > 3.5), "b": [dr.max(x), 2], "p": Pooled(dr.sum(mi.Float64(x)), dr.count(x >= 0)), "c": "s"}
+    out = to_host(tree)
+    assert out["a"] == 6 and type(out["a"]) is int
+    assert out["b"] == [9.0, 2] and type(out["b"][0]) is float
+    assert out["p"].total == 45.0 and out["p"].count == 10 and out["p"].mean() == 4.5 and out["c"] == "s"

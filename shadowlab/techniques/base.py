@@ -16,6 +16,7 @@ from __future__ import annotations
 import importlib
 import math
 import pkgutil
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -127,7 +128,8 @@ class Param:
 class ShadowResult:
     """What a technique returns. ``visibility[light]``: flat per-G-buffer-point Dr.Jit Float in
     [0, 1] (differentiable where the technique is); ``aovs``: ``<light>.<aov>`` -> (H, W[, C])
-    numpy image for debugging (penumbra width, fallback mask, ...); ``stats``: JSON-able numbers,
+    numpy image for debugging (penumbra width, fallback mask, ...; an :class:`Images` mapping, read
+    back from the device on first access); ``stats``: JSON-able numbers,
     laid out by :meth:`Technique.render`. ``colour[light]``: flat Dr.Jit Color3f RGB visibility,
     only for lights whose shadows the technique colours (translucent casters); ``visibility`` is
     then its channel mean."""
@@ -199,7 +201,12 @@ class LightResult:
     ``colour``: optional flat Dr.Jit Color3f RGB visibility (coloured shadows of translucent
     casters), whose channel mean is ``visibility``; ``images``: AOVs that are images already
     (H×W[×C] numpy: a technique made of others passes their AOVs through), stored as
-    ``<light>.<name>`` like ``aovs``."""
+    ``<light>.<name>`` like ``aovs``; ``counts``: reductions (:func:`device_count`,
+    :func:`device_total`) made in the render's kernel that :meth:`Technique.light_stats` turns
+    into stats; like a Dr.Jit value in ``stats`` they are read back once, after the evaluation,
+    and ``light_stats`` sees them as Python numbers. (A reduction's result used in a further
+    Dr.Jit expression would need a kernel of its own: arithmetic on counts belongs to
+    ``light_stats``.)"""
 
     visibility: object
     aovs: dict = field(default_factory=dict)
@@ -208,6 +215,7 @@ class LightResult:
     maps: list = field(default_factory=list)
     colour: object = None
     images: dict = field(default_factory=dict)
+    counts: dict = field(default_factory=dict)
 
 
 class RenderContext:
@@ -377,7 +385,8 @@ class Technique:
 
     def light_stats(self, frame, light, values: dict, ctx: RenderContext, result: LightResult) -> dict:
         """Per-light stats that need the evaluated arrays (``result.visibility``, ``result.aovs``
-        and ``result.active`` hold them, evaluated); merged over ``result.stats``."""
+        and ``result.active`` hold them, evaluated) or the device counts (``result.counts``, read
+        back: Python numbers); merged over ``result.stats``."""
         return {}
 
     def summarise(self, frame, values: dict, ctx: RenderContext, lights: dict) -> dict:
@@ -386,13 +395,16 @@ class Technique:
 
     # -- the loop ------------------------------------------------------------------------------
     def render(self, frame, params: dict | None = None) -> ShadowResult:
-        """Resolve ``params``, :meth:`prepare`, then per light :meth:`render_light`, evaluate
-        visibility and AOVs together (the stage boundary) and gather the stats.
+        """Resolve ``params``, :meth:`prepare`, then per light :meth:`render_light`; evaluate every
+        light's visibility and AOVs together (the render's one stage boundary: no light waits for
+        another's kernel or read-back) and gather the stats.
 
         Stats layout: ``stats["lights"][light]`` holds the light's stats and, where the family
         reports them, ``maps`` (one dict per shadow map or tile); every per-light stat is also
         ``stats[stat][light]`` (plus ``["all"]``, pooled over lights, for a :class:`Pooled`
-        mean); the family's global stats (:meth:`summarise`) sit at the top level."""
+        mean); the family's global stats (:meth:`summarise`) sit at the top level. A stat may
+        be a Dr.Jit array of width 1 (a reduction left on the device): every such value of the
+        render is read back at once, after the lights' evaluation."""
         values = self.resolve(params)
         why = self.unsupported(frame.light_spec)
         if why:
@@ -400,33 +412,39 @@ class Technique:
         ctx = RenderContext(self, values)
         self.prepare(frame, values, ctx)
         gb = frame.gbuffer
-        vis, aovs, lights, pools, colour = {}, {}, {}, {}, {}
-        for light in frame.lights:
-            r = self.render_light(frame, light, values, ctx)
-            v, c = r.visibility, r.colour
+        results = {light.name: self.render_light(frame, light, values, ctx) for light in frame.lights}
+        outputs = []
+        for r in results.values():
             extra = {k: dr.detach(a) for k, a in r.aovs.items()}
             if r.active is not None:
-                v = dr.select(r.active, v, 1.0)
-                c = dr.select(r.active, c, 1.0) if c is not None else None
+                r.visibility = dr.select(r.active, r.visibility, 1.0)
+                r.colour = dr.select(r.active, r.colour, 1.0) if r.colour is not None else None
                 extra = {k: dr.select(r.active, a, 0.0) for k, a in extra.items()}
-            dr.eval(v, *extra.values(), *([r.active] if r.active is not None else []), *([c] if c is not None else []))
-            r.visibility, r.aovs, r.colour = v, extra, c
-            vis[light.name] = v
-            if c is not None:
-                colour[light.name] = c
-            for k, a in extra.items():
-                aovs[f"{light.name}.{k}"] = gb.to_image(a)
+            r.aovs = extra
+            outputs += [r.visibility, *extra.values(), *(x for x in (r.active, r.colour) if x is not None)]
+        dr.eval(*outputs)
+        host = to_host({ln: (r.stats, r.counts) for ln, r in results.items()})
+        aovs = Images(gb.to_image)
+        lights = {}
+        for light in frame.lights:
+            r = results[light.name]
+            r.stats, r.counts = host[light.name]
+            for k, a in r.aovs.items():
+                aovs.defer(f"{light.name}.{k}", a)
             for k, img in r.images.items():
                 aovs[f"{light.name}.{k}"] = img
-            st = {**r.stats, **self.light_stats(frame, light, values, ctx, r)}
+            lights[light.name] = {**r.stats, **self.light_stats(frame, light, values, ctx, r)}
+        lights = to_host(lights)
+        pools = {}
+        for st in lights.values():
             for k, s in st.items():
                 if isinstance(s, Pooled):
                     tot, cnt = pools.get(k, (0.0, 0))
                     pools[k] = (tot + s.total, cnt + s.count)
                     st[k] = s.mean()
+        for ln, r in results.items():
             if r.maps:
-                st["maps"] = [dict(m) for m in r.maps]
-            lights[light.name] = st
+                lights[ln]["maps"] = [dict(m) for m in r.maps]
         stats = dict(self.summarise(frame, values, ctx, lights))
         for ln, st in lights.items():
             for k, s in st.items():
@@ -435,8 +453,85 @@ class Technique:
         for k, (tot, cnt) in pools.items():
             stats[k]["all"] = tot / cnt if cnt else 0.0
         stats["lights"] = lights
-        return ShadowResult(visibility=vis, aovs=aovs, stats=stats, colour=colour, technique=self)
+        return ShadowResult(visibility={ln: r.visibility for ln, r in results.items()}, aovs=aovs, stats=stats,
+                            colour={ln: r.colour for ln, r in results.items() if r.colour is not None},
+                            technique=self)
 
+
+class Images(Mapping):
+    """A render's AOV images, ``<light>.<aov>`` -> (H, W[, C]) numpy: kept as the flat evaluated
+    Dr.Jit arrays and read back (``to_image``) when first asked for, so a render moves no image
+    to the host that nobody looks at. Pickles as a plain dict of images."""
+
+    def __init__(self, to_image):
+        self._to_image, self._flat, self._img, self._keys = to_image, {}, {}, {}
+
+    def defer(self, key: str, flat) -> None:
+        """Add ``key`` as a flat per-point array, converted on first access."""
+        self._flat[key] = flat
+        self._keys[key] = None
+
+    def __setitem__(self, key: str, image) -> None:
+        self._flat.pop(key, None)
+        self._img[key] = image
+        self._keys[key] = None
+
+    def __getitem__(self, key: str):
+        if key not in self._img:
+            if key not in self._flat:
+                raise KeyError(key)
+            self._img[key] = self._to_image(self._flat.pop(key))
+        return self._img[key]
+
+    def __iter__(self):
+        return iter(self._keys)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def __reduce__(self):
+        return dict, (dict(self.items()),)
+
+
+def device_count(mask):
+    """How many entries of ``mask`` are True, as a UInt32 of width 1 left on the device: a symbolic
+    reduction (atomic adds fused into the kernel that evaluates ``mask``; integers, so the count
+    does not depend on their order). :func:`to_host` reads it."""
+    return dr.sum(dr.select(mask, mi.UInt32(1), mi.UInt32(0)), mode="symbolic")
+
+
+def device_total(values):
+    """Σ ``values`` as a Float64 of width 1 left on the device (symbolic, like
+    :func:`device_count`); exact, hence independent of the order of the atomic adds, for
+    integer-valued inputs below 2⁵³ (counts of steps or taps)."""
+    return dr.sum(mi.Float64(values), mode="symbolic")
+
+
+def to_host(tree):
+    """``tree`` (dicts, lists, tuples, :class:`Pooled`) with every Dr.Jit value of width 1 replaced by
+    its Python number (int for integer arrays), all of them evaluated together and read back
+    once: the stats of a render."""
+    found = []
+
+    def walk(x, f):
+        if isinstance(x, dict):
+            return {k: walk(v, f) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return type(x)(walk(v, f) for v in x)
+        if isinstance(x, Pooled):
+            return Pooled(walk(x.total, f), walk(x.count, f), walk(x.value, f))
+        if isinstance(x, dr.ArrayBase):
+            return f(x)
+        return x
+
+    walk(tree, lambda x: found.append(x))
+    if not found:
+        return tree
+    # the render's one wait for the device: stats are Python numbers, so they are read, all in one
+    # array (float64 holds every count and float32 exactly), after every light's kernels
+    values = dr.concat([mi.Float64(dr.detach(x)) for x in found]).numpy()
+    host = {id(x): int(v) if dr.is_integral_v(x) else float(v) for x, v in zip(found, values)}
+    return walk(tree, lambda x: host[id(x)])
 
 
 _REGISTRY: dict = {}

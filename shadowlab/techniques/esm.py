@@ -59,7 +59,7 @@ import math
 import drjit as dr
 
 from ..errors import InputError
-from .base import Param, param_table_markdown, register
+from .base import Param, device_count, param_table_markdown, register
 from .prefilter import (FILTER_PARAMS, MAP_PARAMS, RASTER_PARAMS, RECEIVER_PARAMS, PrefilteredTechnique, bilinear, blur,
                         corner_max, max_filter, normalised_depth, pcf_footprint, scalar)
 
@@ -121,9 +121,7 @@ class ESM(PrefilteredTechnique):
             flag = rec["zn"] < corner_max(view, max_filter(view, z, n), fp)
         flag &= rec["active"]
         vis = dr.select(flag, pcf_footprint(view, rec, fp, bias, n, kind), vis)
-        mask = dr.select(flag, 1.0, 0.0)
-        dr.eval(vis, mask)
-        return vis, {"fallback": mask}, {"fallback": int(dr.count(flag)[0])}
+        return vis, {"fallback": dr.select(flag, 1.0, 0.0)}, {"fallback": device_count(flag)}
 
 
 __doc__ += "\n\nParameters of ``esm`` (generated from the declaration):\n\n" + param_table_markdown(ESM)

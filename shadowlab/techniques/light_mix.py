@@ -24,7 +24,10 @@ from __future__ import annotations
 import dataclasses
 
 from ..errors import InputError
-from .base import LightResult, Technique, get, register_composer
+import drjit as dr
+import mitsuba as mi
+
+from .base import LightResult, Pooled, RenderContext, Technique, get, register_composer
 
 __all__ = ["LightMix", "parse", "is_mix"]
 
@@ -118,20 +121,29 @@ class LightMix(Technique):
                      for p in get(t).fit_params(self._values_of(slot, values)))
 
     def prepare(self, frame, values, ctx) -> None:
-        ctx.results = {}
+        """Each light's technique prepares on a frame showing that light only; the lights are then
+        rendered by the base loop, evaluated together (no light waits for another's kernel)."""
+        ctx.subs = {}
         for ln, t in self.assignment([l.name for l in frame.lights]).items():
-            tech = get(t)
-            ctx.results[ln] = (tech, tech.render(frame.for_lights([ln]), self._values_of(ln, values)))
+            tech, sub = get(t), frame.for_lights([ln])
+            vals = tech.resolve(self._values_of(ln, values))
+            why = tech.unsupported(sub.light_spec)
+            if why:
+                raise InputError(why)
+            sctx = RenderContext(tech, vals)
+            tech.prepare(sub, vals, sctx)
+            ctx.subs[ln] = (tech, sub, vals, sctx)
 
     def render_light(self, frame, light, values, ctx) -> LightResult:
-        tech, r = ctx.results[light.name]
-        pre = f"{light.name}."
-        aovs = {k[len(pre):]: a for k, a in r.aovs.items() if k.startswith(pre)}
-        st = dict((r.stats.get("lights") or {}).get(light.name, {}))
-        maps = st.pop("maps", None) or []
-        st["technique"] = tech.name
-        return LightResult(visibility=r.visibility[light.name], stats=st, maps=maps,
-                           colour=r.colour.get(light.name), images=aovs)
+        tech, sub, vals, sctx = ctx.subs[light.name]
+        return tech.render_light(sub, light, vals, sctx)
+
+    def light_stats(self, frame, light, values, ctx, result) -> dict:
+        """The light's technique's stats; a mean over points stays that light's mean (the lights'
+        techniques differ, so nothing is pooled over them), and ``technique`` names it."""
+        tech, sub, vals, sctx = ctx.subs[light.name]
+        st = {**result.stats, **tech.light_stats(sub, light, vals, sctx, result)}
+        return {**{k: mean_of(s) if isinstance(s, Pooled) else s for k, s in st.items()}, "technique": tech.name}
 
     def report_images(self, frame, result, mask, vis: dict) -> dict:
         out = {}
@@ -145,6 +157,16 @@ class LightMix(Technique):
             for key, per_light in tech.report_images(frame, sub, mask, {ln: vis[ln]}).items():
                 out.setdefault(key, {}).update(per_light)
         return out
+
+
+def mean_of(p: Pooled):
+    """:meth:`Pooled.mean` of a value whose numbers may still be on the device (Dr.Jit, width 1)."""
+    if p.value is not None:
+        return p.value
+    if isinstance(p.total, dr.ArrayBase) or isinstance(p.count, dr.ArrayBase):
+        cnt = mi.Float64(p.count)
+        return dr.select(cnt > 0, mi.Float64(p.total) / dr.maximum(cnt, 1.0), 0.0)
+    return p.total / p.count if p.count else 0.0
 
 
 register_composer(is_mix, parse)

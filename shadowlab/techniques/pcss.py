@@ -134,7 +134,8 @@ import drjit as dr
 import mitsuba as mi
 
 from ..errors import InputError
-from .base import LightResult, Param, Pooled, light_scale_param, param_table_markdown, register, scaled_size
+from .base import (LightResult, Param, Pooled, device_count, light_scale_param, param_table_markdown, register,
+                   scaled_size)
 from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, map_entry, map_stats, receiver, receiver_plane_gradient,
                          stored_depth, texel_index)
 from .blocker_search import (BLOCKER_COUNTS, PCF_COUNTS, SEARCH_SETS, pattern_arrays, pcf_loop, pcf_pattern,
@@ -225,15 +226,16 @@ class PCSS(ShadowMapTechnique):
         _, _, b = stored_depth(view, rec["face"], texel_index(rec["u"]), texel_index(rec["v"]), ctx.bias)
         return LightResult(v, {"texel": rec["texel"], "receiver_bias": rec["zbias"], "depth_bias": b, **extra},
                            active=rec["active"], maps=[map_entry(view)],
-                           stats={**map_stats(view), "light_size": float(dr.detach(w_light)[0])})
+                           stats={**map_stats(view), "light_size": dr.detach(w_light)},
+                           counts={"active": device_count(rec["active"]),
+                                   "found": device_count(rec["active"] & (extra["blocker_count"] > 0))})
 
     def light_stats(self, frame, light, values, ctx, result):
+        """Taps per active point: the search's, plus the PCF's where a blocker was found (the
+        points counted in the render's kernel)."""
         nb, npcf = int(values["blocker_samples"]), int(values["pcf_samples"])
-        active = result.active.numpy()
-        found = result.aovs["blocker_count"].numpy() > 0
-        n_act = int(active.sum())
-        t = float(nb * n_act + npcf * int((found & active).sum()))
-        return {"samples_per_pixel": Pooled(t, n_act)}
+        n_act, n_found = result.counts["active"], result.counts["found"]
+        return {"samples_per_pixel": Pooled(float(nb * n_act + npcf * n_found), n_act)}
 
     def summarise(self, frame, values, ctx, lights):
         return {**super().summarise(frame, values, ctx, lights), "blocker_samples": int(values["blocker_samples"]),

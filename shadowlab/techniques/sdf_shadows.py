@@ -52,15 +52,14 @@ import math
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from ..errors import InputError
 from ..scene.lights import light_sphere
 from ..sdf import soft
 from ..sdf.trace import hard_visibility
 from . import _sdf_shading as sdf_shading
-from .base import (LightResult, Param, Pooled, Technique, light_scale_param, needs_sdf, param_table_markdown, register,
-                   scaled_size)
+from .base import (LightResult, Param, Pooled, Technique, device_count, device_total, light_scale_param, needs_sdf,
+                   param_table_markdown, register, scaled_size)
 
 SOURCE = "[Bán 2019]"
 
@@ -136,19 +135,24 @@ class SDFTechnique(Technique):
     def prepare(self, frame, values, ctx):
         ctx.sdf = require_sdf(frame, self.name)
         ctx.o, ctx.R0 = surface_points(frame, values.get("surface_radius", SURFACE_RADIUS.default))
-        ctx.mask = frame.gbuffer.valid.numpy()
 
     def render_light(self, frame, light, values, ctx):
         v, extra, radius = self.light_visibility(frame, ctx.sdf, light, ctx.o, ctx.R0, values)
-        return LightResult(v, extra, active=frame.gbuffer.valid, stats={"light_radius": radius})
+        mask = frame.gbuffer.valid
+        counts = {"points": device_count(mask)}
+        if "iterations" in extra:   # SDF evaluations, counted in the render's kernel (float64: exact)
+            its = dr.detach(extra["iterations"])
+            counts["evals"] = device_total(dr.select(mask, its, 0.0))
+            if values.get("i_max"):
+                counts["stopped"] = device_count(mask & (its >= values["i_max"]))
+        return LightResult(v, extra, active=mask, stats={"light_radius": radius}, counts=counts)
 
     def light_stats(self, frame, light, values, ctx, result):
-        mask = ctx.mask
-        its = result.aovs["iterations"].numpy()[mask] if "iterations" in result.aovs else np.zeros(0)
-        n = int(mask.sum())
-        imax = values.get("i_max")
-        at = float((its >= imax).mean()) if n and imax and self.name not in ("sdf_mc", "sdf_edge_mc") else 0.0
-        return {"sdf_evals_per_point": Pooled(float(its.sum()), n, float(its.mean()) if n else 0.0), "at_i_max": at}
+        """SDF evaluations per shaded point and the share of points stopped by ``i_max``."""
+        c = result.counts
+        n, total = c["points"], c.get("evals", 0.0)
+        at = c["stopped"] / n if n and "stopped" in c and self.name not in ("sdf_mc", "sdf_edge_mc") else 0.0
+        return {"sdf_evals_per_point": Pooled(total, n, total / n if n else 0.0), "at_i_max": at}
 
 
 @register
