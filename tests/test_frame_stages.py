@@ -1,7 +1,7 @@
 """A frame without host round trips: ``make_frame`` builds the G-buffer and the unshadowed light on
 the device and evaluates them once; a render evaluates every light together and reads its stats
-back once; what used to go through numpy inside a frame (film coordinates) gives the same bits on
-the device."""
+back once; what used to go through numpy inside a frame (film coordinates, the penumbra map's
+storage) gives the same bits on the device."""
 
 from __future__ import annotations
 
@@ -129,3 +129,32 @@ def test_to_host_reads_every_device_value_once(mitsuba_backend):
     assert out["a"] == 6 and type(out["a"]) is int
     assert out["b"] == [9.0, 2] and type(out["b"][0]) is float
     assert out["p"].total == 45.0 and out["p"].count == 10 and out["p"].mean() == 4.5 and out["c"] == "s"
+
+
+def _store_penumbra_numpy(s: np.ndarray, bits: int) -> np.ndarray:
+    """The host version the device one replaced (half float by numpy's cast; 8-bit UNORM codes)."""
+    s = np.asarray(s, np.float32)
+    if bits == 16:
+        return s.astype(np.float16).astype(np.float32)
+    m = float(s.max())
+    if m <= 0.0:
+        return np.zeros_like(s)
+    code = np.round(np.clip(s / m, 0.0, 1.0) * 255.0)
+    return (code * (m / 255.0)).astype(np.float32)
+
+
+@pytest.mark.parametrize("bits", [16, 8])
+def test_the_penumbra_map_is_stored_on_the_device_with_the_hosts_bits(mitsuba_backend, bits):
+    import mitsuba as mi
+
+    from shadowlab.techniques.ssss import store_penumbra
+    rng = np.random.default_rng(3)
+    s = np.concatenate([rng.random(20000) * 0.37, rng.random(20000) * 1e-3, [0.0, 0.37, 65519.0, 70000.0],
+                        np.linspace(0, 0.37, 511)]).astype(np.float32)
+    # sizes whose codes are exactly k + ½ (over a maximum of 255): numpy rounds them half to even
+    ties = np.append(np.arange(255, dtype=np.float32) + np.float32(0.5), np.float32(255.0))
+    for x in (s, ties):
+        with np.errstate(over="ignore"):
+            want = _store_penumbra_numpy(x, bits)
+        assert np.array_equal(store_penumbra(mi.Float(x), bits).numpy(), want)
+    assert np.array_equal(store_penumbra(mi.Float(np.zeros(7, np.float32)), bits).numpy(), np.zeros(7, np.float32))

@@ -187,16 +187,16 @@ def unpack_rgba8(words: list, n_layers: int) -> list:
 
 
 def store_penumbra(size, bits: int):
-    """The penumbra size as the penumbra map stores it: IEEE half float (16) or 8-bit UNORM over
-    [0, max size] (8); a stage boundary (numpy's float16 rounding is the hardware's)."""
-    s = np.asarray(size.numpy(), np.float32)
+    """The penumbra size as the penumbra map stores it: IEEE half float (16; the cast rounds to
+    nearest even, as the hardware's) or 8-bit UNORM over [0, max size] (8; the maximum is reduced
+    on the device, codes round half to even), without leaving the device."""
+    s = mi.Float(size)
     if bits == 16:
-        return mi.Float(s.astype(np.float16).astype(np.float32))
-    m = float(s.max()) if s.size else 0.0
-    if m <= 0.0:
-        return mi.Float(np.zeros_like(s))
-    code = np.round(np.clip(s / m, 0.0, 1.0) * 255.0)
-    return mi.Float((code * (m / 255.0)).astype(np.float32))
+        return mi.Float(dr.float16_array_t(mi.Float)(s))
+    m = dr.max(s)
+    code = dr.round(dr.clip(s / m, 0.0, 1.0) * 255.0)
+    # 255 opaque: a division by a literal becomes a product with its reciprocal (another last bit)
+    return dr.select(m > 0.0, code * (m / dr.opaque(mi.Float, 255.0)), 0.0)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -287,18 +287,19 @@ def full_grid(screen) -> Grid:
                 pn, pc, screen.index)
 
 
-def blur_full(screen, v, sigma, kernel: int, thr, plane: bool, span=None):
-    """The two passes on the screen's (sub-)pixel grid, G-buffer order."""
+def blur_full(screen, values: list, sigmas: list, kernel: int, thr, plane: bool, span=None) -> list:
+    """The two passes on the screen's (sub-)pixel grid, G-buffer order, of every layer of
+    ``values`` (with its ``sigmas``): each pass of every layer in one stage."""
     g = full_grid(screen)
     for axis in ("x", "y"):
-        v = _blur_pass(v, sigma, g, axis, kernel, thr, plane, span)
-        dr.eval(v)
-    return v
+        values = [_blur_pass(v, sg, g, axis, kernel, thr, plane, span) for v, sg in zip(values, sigmas)]
+        dr.eval(*values)
+    return values
 
 
-def blur_half(screen, v, sigma, kernel: int, thr, plane: bool, span=None):
-    """Blur on the half-resolution grid (4-tap gather down, depth-aware bilinear up); the module
-    docstring, step 5."""
+def blur_half(screen, values: list, sigmas: list, kernel: int, thr, plane: bool, span=None) -> list:
+    """Blur on the half-resolution grid (4-tap gather down, depth-aware bilinear up) of every
+    layer of ``values`` (with its ``sigmas``); the module docstring, step 5."""
     Wh, Hh = (screen.width + 1) // 2, (screen.height + 1) // 2
     k = dr.arange(mi.UInt32, Wh * Hh)
     X, Y = mi.Int32(k % Wh), mi.Int32(k // Wh)
@@ -306,46 +307,54 @@ def blur_half(screen, v, sigma, kernel: int, thr, plane: bool, span=None):
     def hindex(ix, iy):
         return mi.UInt32(dr.clip(mi.Int32(iy), 0, Hh - 1) * Wh + dr.clip(mi.Int32(ix), 0, Wh - 1))
 
-    vs, zs, ns = 0.0, 0.0, 0.0
-    ps, nsum, sg = mi.Point3f(0.0), mi.Vector3f(0.0), dr.zeros(mi.Float, Wh * Hh)
+    n = len(values)
+    vs, zs, ns = [0.0] * n, 0.0, 0.0
+    ps, nsum, sg = mi.Point3f(0.0), mi.Vector3f(0.0), [dr.zeros(mi.Float, Wh * Hh) for _ in range(n)]
     for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):   # the 4-tap gather
         idx = screen.index(2 * X + dx, 2 * Y + dy)
         okk = dr.gather(mi.Bool, screen.valid, idx)
-        vs = vs + dr.select(okk, dr.gather(mi.Float, v, idx), 0.0)
+        for i in range(n):                            # layers, not pixels
+            vs[i] = vs[i] + dr.select(okk, dr.gather(mi.Float, values[i], idx), 0.0)
+            sg[i] = dr.maximum(sg[i], dr.select(okk, dr.gather(mi.Float, sigmas[i], idx), 0.0))
         zs = zs + dr.select(okk, dr.gather(mi.Float, screen.depth, idx), 0.0)
         ps = ps + dr.select(okk, dr.gather(mi.Point3f, screen.position, idx), 0.0)
         nsum = nsum + dr.select(okk, dr.gather(mi.Vector3f, screen.normal, idx), 0.0)
         ns = ns + dr.select(okk, 1.0, 0.0)
-        sg = dr.maximum(sg, dr.select(okk, dr.gather(mi.Float, sigma, idx), 0.0))
     hok = ns > 0
     inv = 1.0 / dr.maximum(ns, 1.0)
-    hv = dr.select(hok, vs * inv, 1.0)
+    hv = [dr.select(hok, v * inv, 1.0) for v in vs]
     hz = dr.select(hok, zs * inv, 0.0)
     hn = dr.normalize(dr.select(dr.norm(nsum) > 0, nsum, mi.Vector3f(0, 0, 1)))
     pn, pc = _plane(screen.camera, ps * inv, hn)
-    hs = sg * 0.5
-    dr.eval(hv, hz, hok, hs, pn, pc)
+    hs = [x * 0.5 for x in sg]
+    dr.eval(*hv, hz, hok, *hs, pn, pc)
     g = Grid(screen.camera, Wh, Hh, X, Y, hz, hok, pn, pc, hindex)
     for axis in ("x", "y"):
-        hv = _blur_pass(hv, hs, g, axis, kernel, thr, plane, span)
-        dr.eval(hv)
+        hv = [_blur_pass(h, s, g, axis, kernel, thr, plane, span) for h, s in zip(hv, hs)]
+        dr.eval(*hv)
     # up: bilinear over the 2×2 half pixels around the full pixel's centre, with depth rejection
     fx = (mi.Float(screen.x) + 0.5) * 0.5 - 0.5
     fy = (mi.Float(screen.y) + 0.5) * 0.5 - 0.5
     x0, y0 = dr.floor(fx), dr.floor(fy)
     ax, ay = fx - x0, fy - y0
     z = screen.depth
-    acc, wsum = dr.zeros(mi.Float, dr.width(z)), dr.zeros(mi.Float, dr.width(z))
+    acc = [dr.zeros(mi.Float, dr.width(z)) for _ in range(n)]
+    wsum = dr.zeros(mi.Float, dr.width(z))
     for dx, dy, w in ((0, 0, (1 - ax) * (1 - ay)), (1, 0, ax * (1 - ay)), (0, 1, (1 - ax) * ay), (1, 1, ax * ay)):
         idx = hindex(mi.Int32(x0) + dx, mi.Int32(y0) + dy)
         zk = dr.gather(mi.Float, hz, idx)
         take = dr.gather(mi.Bool, hok, idx) & (dr.abs(zk - z) <= thr * (z if span is None else span))
         w = dr.select(take, w, 0.0)
-        acc += w * dr.gather(mi.Float, hv, idx)
+        for i in range(n):
+            acc[i] += w * dr.gather(mi.Float, hv[i], idx)
         wsum += w
-    near = dr.gather(mi.Float, hv, hindex(screen.x // 2, screen.y // 2))
-    up = dr.select(wsum > 0, acc / dr.select(wsum > 0, wsum, 1.0), near)
-    return dr.select(screen.valid & (sigma > 0), up, v)
+    out = []
+    for i in range(n):
+        near = dr.gather(mi.Float, hv[i], hindex(screen.x // 2, screen.y // 2))
+        up = dr.select(wsum > 0, acc[i] / dr.select(wsum > 0, wsum, 1.0), near)
+        out.append(dr.select(screen.valid & (sigmas[i] > 0), up, values[i]))
+    dr.eval(*out)
+    return out
 
 
 def _hit_depth(view):
@@ -363,13 +372,15 @@ def min_filter_map(view, r):
     those past the map's edge), then a min over ±``r`` low-resolution texels along x and then along
     y, clamped at the face's borders (scipy ``minimum_filter1d``'s ``mode="nearest"``). Three Dr.Jit
     passes over all low-resolution texels of all faces; N, Nl and r enter them as opaque values,
-    so a new radius or map size reuses the compiled kernels."""
+    so a new radius or map size reuses the compiled kernels; ``r`` may be a Dr.Jit Int32 of width
+    1 (a radius computed on the device)."""
     B = MIN_FILTER_DOWNSAMPLE
     F, N = view.nfaces, view.res
     Nl = -(-N // B)
     z = view.derived("z_min_filter", _hit_depth)
     n_o, nl_o = dr.opaque(mi.Int32, N), dr.opaque(mi.Int32, Nl)
-    r_o = dr.opaque(mi.Int32, min(max(int(r), 0), Nl))    # r ≥ Nl − 1 already spans a whole row
+    # r ≥ Nl − 1 already spans a whole row
+    r_o = dr.clip(r, 0, Nl) if isinstance(r, dr.ArrayBase) else dr.opaque(mi.Int32, min(max(int(r), 0), Nl))
     idx = dr.arange(mi.Int32, F * Nl * Nl)
     # block min, B×B taps unrolled
     lx = idx % nl_o
@@ -445,9 +456,8 @@ class SSSS(ShadowMapTechnique):
         """The min filter's nearest depth at each receiver's texel (module docstring, step 3)."""
         B = MIN_FILTER_DOWNSAMPLE
         Nl = -(-view.res // B)
-        ws = dr.select(act, w_search, 0.0)
-        wmax = float(dr.max(ws)[0]) if dr.width(ws) else 0.0          # one scalar read-back
-        r = int(math.ceil(wmax / 2.0 / B))
+        # the radius, ⌈max w_search / 2B⌉ low-resolution texels, stays on the device (exact: ×1/8)
+        r = mi.Int32(dr.ceil(dr.max(dr.select(act, w_search, 0.0)) * (0.5 / B)))
         low = min_filter_map(view, r)
         tex = dr.select(dr.isfinite(low), low, 3.0e38)
         ix = dr.clip(mi.Int32(dr.floor(rec["u"])) // B, 0, Nl - 1)
@@ -459,7 +469,7 @@ class SSSS(ShadowMapTechnique):
         """Light ``light``'s contribution to its layer (steps 2–4 of the module docstring, its own
         work): its map, hard shadow, penumbra size, lit-volume membership, layer value (binary:
         the hard shadow; exponential: exp(−k(z − d)) where shadowed) and, with translucent
-        casters, its tint. Evaluated."""
+        casters, its tint. Not evaluated: :meth:`prepare` evaluates every light's at once."""
         gb = frame.gbuffer
         coloured = frame.scene.has_translucent
         view = view_for(frame, light.name, values)
@@ -481,7 +491,6 @@ class SSSS(ShadowMapTechnique):
             ix, iy = texel_index(rec["u"]), texel_index(rec["v"])
             behind = depth_test(opaque.translucent, rec, ix, iy, ctx.bias) < 0.5
             tint = dr.select(rec["active"] & behind, opaque.tint(rec["face"], ix, iy), mi.Color3f(1.0))
-        dr.eval(hard, size, member, val, *([tint] if coloured else []))
         return dict(view=view, hard=hard, size=size, member=member, val=val, tint=tint)
 
     # -- what the lights share, once per render ---------------------------------------------------
@@ -514,26 +523,23 @@ class SSSS(ShadowMapTechnique):
                 s = dr.maximum(s, dr.select(q["member"], q["size"], 0.0))
                 if coloured:
                     t = t * dr.select(q["member"], q["tint"], mi.Color3f(1.0))
-            dr.eval(v, s, *([t] if coloured else []))
             lv.append(v)
-            ls.append(store_penumbra(s, int(values["penumbra_bits"])))
+            ls.append(s)
             lt.append(t)
+        # an 8-bit penumbra map is scaled by its layer's largest size: the sizes are a stage of their own
+        if int(values["penumbra_bits"]) == 8:
+            dr.eval(*ls)
+        ls = [store_penumbra(s, int(values["penumbra_bits"])) for s in ls]
+        tw = []
         if coloured:  # the layered translucency map: one RGBA8 word per layer (RGB tint, A coverage)
             tw = [pack_rgba8([t.x, t.y, t.z, dr.select((t.x < 1.0) | (t.y < 1.0) | (t.z < 1.0), 1.0, 0.0)])[0]
                   for t in lt]
-            dr.eval(*tw)
-            lt = [unpack_rgba8([w], 4) for w in tw]
-            dr.eval(*[c for t in lt for c in t])
-        if values["layer_packing"] == "binary":
-            words = pack_binary(lv)
-            dr.eval(*words)
-            lv = unpack_binary(words, n_layers)
-        else:
-            words = pack_rgba8(lv)
-            dr.eval(*words)
-            lv = unpack_rgba8(words, n_layers)
-        dr.eval(*lv)
-        # blur per layer
+        words = pack_binary(lv) if values["layer_packing"] == "binary" else pack_rgba8(lv)
+        # every light's own work and the packed layers: one stage for all the lights
+        dr.eval(*words, *tw, *ls, *(per[n][k] for n in per for k in ("hard", "member")))
+        lv = unpack_binary(words, n_layers) if values["layer_packing"] == "binary" else unpack_rgba8(words, n_layers)
+        lt = [unpack_rgba8([w], 4) for w in tw]
+        # blur per layer, every layer's pass in one stage
         P = scr.width / (2.0 * scr.camera.tan_x)
         fwd = mi.Vector3f(*[float(x) for x in scr.camera.forward])
         nz = dr.maximum(dr.dot(scr.normal, -fwd), NZ_FLOOR)
@@ -543,21 +549,16 @@ class SSSS(ShadowMapTechnique):
             z0, z1 = scr.camera.depth_range(frame.scene.center, frame.scene.radius)
             span = dr.opaque(mi.Float, float(z1 - z0))
         kernel = int(values["kernel"])
-        blurred, fpx, tints = [], [], []
+        fpx = [dr.select(scr.valid, ls[L] * dr.sqrt(nz) * P / dr.maximum(scr.depth, 1e-12), 0.0)
+               for L in range(n_layers)]
+        sig = [F * (1.0 / math.sqrt(12.0)) for F in fpx]
+        chans = [lv[L] for L in range(n_layers)] + [c for L in range(n_layers) for c in (lt[L][:3] if coloured else ())]
+        csig = sig + [sig[L] for L in range(n_layers) for _ in (range(3) if coloured else ())]
+        dr.eval(*fpx, *sig, *chans, *(t[3] for t in lt))
         fn = blur_half if values["half_resolution"] else blur_full
-        for L in range(n_layers):
-            F = dr.select(scr.valid, ls[L] * dr.sqrt(nz) * P / dr.maximum(scr.depth, 1e-12), 0.0)
-            sigma = F * (1.0 / math.sqrt(12.0))
-            dr.eval(F, sigma)
-            b = fn(scr, lv[L], sigma, kernel, thr, bool(values["depth_plane"]), span)
-            dr.eval(b)
-            blurred.append(b)
-            fpx.append(F)
-            if coloured:
-                tb = mi.Color3f(*[fn(scr, c, sigma, kernel, thr, bool(values["depth_plane"]), span)
-                                  for c in lt[L][:3]])
-                dr.eval(tb)
-                tints.append(tb)
+        out = fn(scr, chans, csig, kernel, thr, bool(values["depth_plane"]), span)
+        blurred = out[:n_layers]
+        tints = [mi.Color3f(*out[n_layers + 3 * L:n_layers + 3 * L + 3]) for L in range(n_layers)] if coloured else []
         ctx.layering = lay
         ctx.words = len(words)
         ctx.twords = n_layers if coloured else 0
