@@ -579,32 +579,41 @@ def n_opt(z_near: float, z_far: float, sin_gamma: float) -> float:
     return (z_near + math.sqrt(z_near * z_far)) / sin_gamma
 
 
+def _lo_hi(a) -> tuple:
+    """(min, max) of a numpy or Dr.Jit array, as Python floats."""
+    if isinstance(a, dr.ArrayBase):
+        return float(dr.min(a)[0]), float(dr.max(a)[0])
+    return float(np.min(a)), float(np.max(a))
+
+
 def lispsm_warp(face, camera, body, z_near: float, z_far: float, n_scale: float = 1.0) -> Warp | None:
     """The LiSPSM warp [Wimmer 2004, §4–5] of the orthographic map ``face`` for a view from
-    ``camera`` over ``body`` ((N, 2) base NDC points that must stay in the square): the axis is
-    the view direction projected into the light's plane, the centre sits n = ``n_scale``·n_opt
-    (:func:`n_opt` of the view depths z_n … z_f and the angle γ between view and light) before
-    the body's nearest point, in line with the eye, and the warped body's bounding box is the
-    new square. None where the view looks along the light (sin γ = 0: nothing to warp)."""
+    ``camera`` over ``body`` ((x, y): base NDC of the points that must stay in the square, numpy
+    or Dr.Jit arrays): the axis is the view direction projected into the light's plane, the
+    centre sits n = ``n_scale``·n_opt (:func:`n_opt` of the view depths z_n … z_f and the angle γ
+    between view and light) before the body's nearest point, in line with the eye, and the warped
+    body's bounding box is the new square. None where the view looks along the light (sin γ = 0:
+    nothing to warp) or the body is empty."""
     R = np.asarray(face.R, np.float64)
     v = np.asarray(camera.forward, np.float64)
     e = np.array([v @ R[0], v @ R[1]])
     sin_g = float(np.linalg.norm(e))          # |v × l|: R's rows are orthonormal
-    body = np.asarray(body, np.float64).reshape(-1, 2)
-    if sin_g < 1e-9 or not len(body):
+    bx, by = body
+    if sin_g < 1e-9 or not (dr.width(bx) if isinstance(bx, dr.ArrayBase) else np.size(bx)):
         return None
     e /= sin_g
+    ex, ey = float(e[0]), float(e[1])
     n = float(n_scale) * n_opt(float(z_near), float(z_far), sin_g) / face.scale
-    along, lat = body @ e, body @ np.array([-e[1], e[0]])
+    along, lat = ex * bx + ey * by, -ey * bx + ex * by
     eye = base_ndc(face, camera.position)[0]
-    a0 = float(eye @ np.array([-e[1], e[0]]))
-    d = float(along.max() - along.min())
+    a0 = float(-ey * eye[0] + ex * eye[1])
+    lo, hi = _lo_hi(along)
+    d = hi - lo
     pad = 1e-4 * max(d, 1e-6)                   # the body's extremes land inside the square, not on its edge
-    b_min, d = float(along.min()) - pad, d + 2.0 * pad
-    p = (lat - a0) / (n + along - b_min)
-    p0, p1 = float(p.min()), float(p.max())
+    b_min, d = lo - pad, d + 2.0 * pad
+    p0, p1 = _lo_hi((lat - a0) / (n + along - b_min))
     pp = 1e-4 * max(p1 - p0, 1e-9 * max(abs(p0), abs(p1), 1e-30))
-    return Warp(e[0], e[1], a0, b_min, n, d, p0 - pp, p1 + pp)
+    return Warp(ex, ey, a0, b_min, n, d, p0 - pp, p1 + pp)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -782,16 +791,16 @@ class VirtualMap(Technique):
         if values.get("warp", "ortho") != "lispsm":
             return None
         f0, cam = base.faces[0], frame.camera
-        if values["focus"] == "visible":
-            gb = frame.own_gbuffer
-            P = vec_numpy(gb.p)[np.asarray(gb.valid.numpy(), bool).reshape(-1)]
-            body = base_ndc(f0, P)
-            body = body[np.all(np.abs(body) <= 1.0, axis=1)]
-            z = cam.view_depth(P)
-            zn, zf = (max(float(z.min()), cam.near), float(z.max())) if len(P) else shadow_range(cam, frame.scene,
-                                                                                                 values)
+        gb = frame.own_gbuffer
+        if values["focus"] == "visible" and dr.any(gb.valid):   # reduced on the device: no point leaves it
+            x, y, _ = face_ndc(f0, gb.p)
+            inside = dr.compress(gb.valid & (dr.abs(x) <= 1.0) & (dr.abs(y) <= 1.0))
+            body = (dr.gather(mi.Float, x, inside), dr.gather(mi.Float, y, inside))
+            z = dr.dot(gb.p - mi.Point3f(*map(float, cam.position)), mi.Vector3f(*map(float, cam.forward)))
+            zn, zf = _lo_hi(dr.gather(mi.Float, z, dr.compress(gb.valid)))
+            zn = max(zn, cam.near)
         else:
-            body = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+            body = (np.array([-1.0, 1.0, 1.0, -1.0]), np.array([-1.0, -1.0, 1.0, 1.0]))
             zn, zf = shadow_range(cam, frame.scene, values)
         return lispsm_warp(f0, cam, body, zn, max(zf, zn), float(values["lispsm_n"]))
 
