@@ -843,9 +843,10 @@ def cast_first_hit(mi_scene, ray, backface: bool, own_ptr, alpha: bool = False, 
     (forward·(p − origin)) lies before ``near`` is cast again along ``ray_near`` (from the near
     plane, with a fresh skip budget): the casters nearer to the light are clipped, as a
     rasterizer's depth clip does; in the same loop, so a clipped map costs no second wavefront."""
-    if near_clip is None:
-        return _cast_loop(mi_scene, ray, backface, own_ptr, alpha, mi.Bool(active))
-    return _cast_clipped(mi_scene, ray, backface, own_ptr, alpha, mi.Bool(active), *near_clip)
+    with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):  # one trace of the loop body (Mitsuba's
+        if near_clip is None:                                     # intersection over every shape), not two
+            return _cast_loop(mi_scene, ray, backface, own_ptr, alpha, mi.Bool(active))
+        return _cast_clipped(mi_scene, ray, backface, own_ptr, alpha, mi.Bool(active), *near_clip)
 
 
 def cast_flags(alpha: bool):
@@ -858,14 +859,16 @@ def cast_flags(alpha: bool):
 def _cast_loop(mi_scene, ray, backface, own_ptr, alpha, active):
     max_skips = MAX_SKIPS_ALPHA if alpha else MAX_SKIPS
     flags = cast_flags(alpha)
-    si = mi_scene.ray_intersect(ray, flags, False, active)
+    si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray))
+    first = mi.Bool(active)      # the first intersection is the loop's first step (traced once)
+    skip = mi.Bool(False)
     i = mi.UInt32(0)
-    skip = active & _skip(si, ray, backface, own_ptr, alpha)
-    while dr.hint(skip & (i < max_skips), max_iterations=-1):
-        ray = si.spawn_ray(ray.d)
+    while dr.hint(first | (skip & (i < max_skips)), max_iterations=-1):
+        ray = dr.select(first, ray, si.spawn_ray(ray.d))
+        i = dr.select(first, i, i + 1)
+        first = mi.Bool(False)
         si = mi_scene.ray_intersect(ray, flags, False, True)
         skip = _skip(si, ray, backface, own_ptr, alpha)
-        i += 1
     return si
 
 
@@ -873,15 +876,15 @@ def _cast_loop(mi_scene, ray, backface, own_ptr, alpha, active):
 def _cast_clipped(mi_scene, ray, backface, own_ptr, alpha, active, ray_near, origin, forward, near):
     max_skips = MAX_SKIPS_ALPHA if alpha else MAX_SKIPS
     flags = cast_flags(alpha)
-    si = mi_scene.ray_intersect(ray, flags, False, active)
+    si = dr.zeros(mi.SurfaceInteraction3f, dr.width(ray))
+    first = mi.Bool(active)
+    skip, redo, clipped = mi.Bool(False), mi.Bool(False), mi.Bool(False)
     i = mi.UInt32(0)
-    skip = active & _skip(si, ray, backface, own_ptr, alpha)
-    redo = ~skip & si.is_valid() & (dr.dot(si.p - origin, forward) < near)
-    clipped = mi.Bool(False)
-    while dr.hint((skip | redo) & (i < max_skips), max_iterations=-1):
-        ray = dr.select(redo, ray_near, si.spawn_ray(ray.d))
-        i = dr.select(redo, 0, i + 1)
+    while dr.hint(first | ((skip | redo) & (i < max_skips)), max_iterations=-1):
+        ray = dr.select(first, ray, dr.select(redo, ray_near, si.spawn_ray(ray.d)))
+        i = dr.select(first | redo, 0, i + 1)
         clipped |= redo
+        first = mi.Bool(False)
         si = mi_scene.ray_intersect(ray, flags, False, True)
         skip = _skip(si, ray, backface, own_ptr, alpha)
         redo = ~skip & ~clipped & si.is_valid() & (dr.dot(si.p - origin, forward) < near)
