@@ -764,7 +764,7 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
         si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha,
                             near_clip=_near_clip(proj, o64, d64, d) if clip else None)
     else:
-        si, tau, first = _cast_translucent(scene.mi_scene, ray, backface, own_ptr, alpha, table)
+        si, tau, first = cast_translucent(scene.mi_scene, ray, backface, own_ptr, alpha, table)
         h, s, dq, zq = _texel_depths(proj, consts, face, first, bits)
         near = LightView(light=light, proj=proj, bits=bits, backface=backface,
                          maps={"depth": dq, "z": zq, "slope": s, "hit": h})
@@ -891,30 +891,36 @@ def _cast_clipped(mi_scene, ray, backface, own_ptr, alpha, active, ray_near, ori
     return si
 
 
-@dr.syntax
-def _cast_translucent(mi_scene, ray, backface, own_ptr, alpha, table):
+def cast_translucent(mi_scene, ray, backface, own_ptr, alpha, table):
     """:func:`cast_first_hit` passing translucent surfaces too: (first opaque hit, τ product of
     the translucent surfaces crossed before it (mi.Color3f), the first translucent hit as a
-    :class:`_Hit` (not valid where there was none))."""
+    :class:`_Hit` (not valid where there was none)). One trace of the loop (see there)."""
+    with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, False):
+        return _cast_translucent(mi_scene, ray, backface, own_ptr, alpha, table)
+
+
+@dr.syntax
+def _cast_translucent(mi_scene, ray, backface, own_ptr, alpha, table):
     flags = cast_flags(alpha)
-    si = mi_scene.ray_intersect(ray, flags, False, True)
-    n = dr.width(si.p)
+    n = dr.width(ray)
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
     first_p, first_n, found = dr.zeros(mi.Point3f, n), dr.zeros(mi.Vector3f, n), dr.zeros(mi.Bool, n)
-    tau = mi.Color3f(1.0)
+    tau, tau_s = mi.Color3f(1.0), mi.Color3f(1.0)
     i = mi.UInt32(0)
-    trans, tau_s = surface_tau(si, table)
-    own = _skip(si, ray, backface, own_ptr, alpha) & ~trans
-    while dr.hint((own | trans) & (i < MAX_SKIPS_ALPHA), max_iterations=-1):
+    first = mi.Bool(True)        # the first intersection is the loop's first step (traced once)
+    trans, own = mi.Bool(False), mi.Bool(False)
+    while dr.hint(first | ((own | trans) & (i < MAX_SKIPS_ALPHA)), max_iterations=-1):
         tau = dr.select(trans, tau * tau_s, tau)
         new = trans & ~found
         first_p = dr.select(new, si.p, first_p)
         first_n = dr.select(new, si.n, first_n)
         found |= trans
-        ray = si.spawn_ray(ray.d)
+        ray = dr.select(first, ray, si.spawn_ray(ray.d))
+        i = dr.select(first, i, i + 1)
+        first = mi.Bool(False)
         si = mi_scene.ray_intersect(ray, flags, False, True)
         trans, tau_s = surface_tau(si, table)
         own = _skip(si, ray, backface, own_ptr, alpha) & ~trans
-        i += 1
     return si, tau, _Hit(first_p, first_n, found)
 
 
