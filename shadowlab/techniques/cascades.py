@@ -464,7 +464,6 @@ class CSM(Technique):
             a_in = dr.select(sel == i, full_a, a_in)
             B = dr.select(sel + 1 == i, full_v, B)
             b_in = dr.select(sel + 1 == i, full_a, b_in)
-            dr.eval(A, B, a_in, b_in)
         # a band point outside one of its two maps takes the other's visibility
         w_eff = dr.select(blended, dr.select(~b_in, 0.0, dr.select(~a_in, 1.0, w)), 0.0)
         vis = dr.select(w_eff > 0.0, dr.lerp(A, B, w_eff), A)
