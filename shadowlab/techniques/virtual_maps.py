@@ -78,7 +78,9 @@ AOVs: ``tile`` (the tile a pixel reads, −1 none), ``demand_x``, ``demand_y`` (
 SMTG cell, for the grid overlay); −1 where there is no surface or it lies outside the map. Every parameter steps the
 result (none is differentiable).
 
-**LiSPSM** (``warp`` = ``lispsm``; [Giegl 2007, §5] ran every result with it, [Wimmer 2004, §4–5]):
+**LiSPSM** (``warp`` = ``lispsm``; [Giegl 2007, §5] ran every result with it, [Wimmer 2004, §4–5];
+the default is ``ortho``: LiSPSM's lower error per frame comes with shadows that crawl as the view
+moves, see the family's page):
 the focused orthographic map's plane is warped by a perspective whose axis is the view direction
 projected into the light's plane (:class:`~shadowlab.render.tiles.Warp`, :func:`lispsm_warp`): its
 centre sits n = ``lispsm_n`` · n_opt before the focused body's nearest point, in line with the eye,
@@ -144,7 +146,7 @@ def _focus_params(default: str) -> tuple:
         ),
         Param(
             "warp",
-            "lispsm",
+            "ortho",
             "choice",
             choices=WARPS,
             source="[Giegl 2007, §5], [Wimmer 2004, §4–5]",
