@@ -94,7 +94,6 @@ import math
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from ..errors import InputError
 from ..scene.light_layers import colour, lit_volume
@@ -359,8 +358,7 @@ def blur_half(screen, values: list, sigmas: list, kernel: int, thr, plane: bool,
 
 def _hit_depth(view):
     """The map's linear depth z where the texel hit something, else +inf (evaluated)."""
-    hit = mi.Bool(np.ascontiguousarray(view.hit, bool).ravel())
-    zi = dr.select(hit, view.dr("z"), dr.inf)
+    zi = dr.select(view.dr("hit"), view.dr("z"), dr.inf)
     dr.eval(zi)
     return zi
 
