@@ -25,6 +25,7 @@ True
 
 from __future__ import annotations
 
+import functools
 import math
 
 import drjit as dr
@@ -85,6 +86,19 @@ def pattern_arrays(offsets: np.ndarray):
     x, y = (mi.Float(np.ascontiguousarray(offsets[:, i], np.float32)) for i in range(2))
     dr.make_opaque(x, y)
     return x, y
+
+
+@functools.lru_cache(maxsize=None)
+def search_arrays(count: int):
+    """:data:`SEARCH_SETS` ``[count]`` as :func:`pattern_arrays`, uploaded once per process (the
+    sets are fixed: a frame moves no pattern to the device)."""
+    return pattern_arrays(SEARCH_SETS[count])
+
+
+@functools.lru_cache(maxsize=None)
+def pcf_arrays(count: int):
+    """:func:`pcf_pattern` ``(count)`` as :func:`pattern_arrays`, uploaded once per process."""
+    return pattern_arrays(pcf_pattern(count))
 
 
 # ----------------------------------------------------------------------------------------------

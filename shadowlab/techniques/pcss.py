@@ -138,7 +138,7 @@ from .base import (LightResult, Param, Pooled, device_count, light_scale_param, 
                    scaled_size)
 from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, map_entry, map_stats, receiver, receiver_plane_gradient,
                          stored_depth, texel_index)
-from .blocker_search import (BLOCKER_COUNTS, PCF_COUNTS, SEARCH_SETS, pattern_arrays, pcf_loop, pcf_pattern,
+from .blocker_search import (BLOCKER_COUNTS, PCF_COUNTS, pcf_arrays, pcf_loop, search_arrays,
                              penumbra_width, scene_light_size, search_loop, search_width)
 
 SOURCE = "[Buljan 2020, §3.6]"
@@ -195,7 +195,7 @@ class PCSS(ShadowMapTechnique):
         w_search = search_width(view, zr, w_light)
         # 1. blocker search
         nb = int(values["blocker_samples"])
-        px, py = pattern_arrays(SEARCH_SETS[nb])
+        px, py = search_arrays(nb)
         cnt, zsum = search_loop(view, rec, g, bias, w_search, px, py, nb)
         found = rec["active"] & (cnt > 0.0)
         z_avg = dr.select(found, zsum / dr.maximum(cnt, 1e-20), zr)
@@ -207,7 +207,7 @@ class PCSS(ShadowMapTechnique):
             w_pen_tex = w_pen / dr.maximum(rec["texel"], 1e-12)
         w_f = dr.maximum(w_pen_tex, dr.opaque(mi.Float, float(values["min_filter"])))
         npcf = int(values["pcf_samples"])
-        px, py = pattern_arrays(pcf_pattern(npcf))
+        px, py = pcf_arrays(npcf)
         dark = pcf_loop(view, rec, g, bias, w_f, px, py, npcf, found)
         vis = dr.select(found, dr.clip(1.0 - dark * (1.0 / npcf), 0.0, 1.0), 1.0)
         act = rec["active"]

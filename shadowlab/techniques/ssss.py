@@ -98,7 +98,7 @@ import mitsuba as mi
 from ..errors import InputError
 from ..scene.light_layers import colour, lit_volume
 from .base import LightResult, Param, light_scale_param, param_table_markdown, register, scaled_size
-from .blocker_search import (BLOCKER_COUNTS, SEARCH_SETS, pattern_arrays, penumbra_width, scene_light_size,
+from .blocker_search import (BLOCKER_COUNTS, penumbra_width, scene_light_size, search_arrays,
                              search_loop, search_width)
 from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, depth_test, map_entry, map_stats, receiver,
                          receiver_plane_gradient, texel_index, view_for)
@@ -440,7 +440,7 @@ class SSSS(ShadowMapTechnique):
                 view.dr(name)
             g = receiver_plane_gradient(view, rec, rec["ng"])
             nb = int(values["blocker_samples"])
-            px, py = pattern_arrays(SEARCH_SETS[nb])
+            px, py = search_arrays(nb)
             cnt, zsum = search_loop(view, rec, g, ctx.bias, w_search, px, py, nb)
             found = act & (cnt > 0.0)
             z_b = dr.select(found, zsum / dr.maximum(cnt, 1e-20), zr)
