@@ -160,13 +160,16 @@ def test_the_penumbra_map_is_stored_on_the_device_with_the_hosts_bits(mitsuba_ba
     assert np.array_equal(store_penumbra(mi.Float(np.zeros(7, np.float32)), bits).numpy(), np.zeros(7, np.float32))
 
 
-def test_the_moment_blur_is_one_kernel_per_pass(mitsuba_backend):
-    """msm's four moment channels: made in one kernel, each blur pass of all four in one more."""
+@pytest.mark.parametrize("scene", ["contact", "two_lights"])
+def test_the_moment_blur_is_one_kernel_per_pass_for_every_light(mitsuba_backend, scene):
+    """msm's four moment channels of every light's map: made in one kernel, each blur pass of all
+    of them in one more (``two_lights``: two maps of one size)."""
     from shadowlab.render.frame import make_frame
     from shadowlab.scene import load
     from shadowlab.techniques import get
-    fr = make_frame(load("contact", resolution=(32, 24)))
+    fr = make_frame(load(scene, resolution=(32, 24)))
     msm = get("msm")
     msm.render(fr, {"resolution": 256, "kernel": 3})
+    assert {v.res * v.res * v.nfaces for v in fr.light_views.values()} == {256 * 256}
     _, jit = _jit_kernels(lambda: msm.render(fr, {"resolution": 256, "kernel": 3}))
     assert len([k for k in jit if k["size"] == 256 * 256]) == 3

@@ -60,7 +60,7 @@ import drjit as dr
 
 from ..errors import InputError
 from .base import Param, device_count, param_table_markdown, register
-from .prefilter import (FILTER_PARAMS, MAP_PARAMS, RASTER_PARAMS, RECEIVER_PARAMS, PrefilteredTechnique, bilinear, blur,
+from .prefilter import (FILTER_PARAMS, MAP_PARAMS, RASTER_PARAMS, RECEIVER_PARAMS, PrefilteredTechnique, bilinear,
                         corner_max, max_filter, normalised_depth, pcf_footprint, scalar)
 
 #: ln(FLT_MAX): the largest c for which exp(c·z), z ≤ 1, is a finite fp32 number
@@ -105,11 +105,13 @@ class ESM(PrefilteredTechnique):
                 raise fp32_cap_error("esm.exponent", cf, FP32_EXP_LIMIT, "exp(c·z)")
         return super().resolve(overrides)
 
-    def shade(self, view, rec, fp, bias, values):
+    def moments(self, view, values):
+        return [dr.exp(scalar(values, "exponent") * normalised_depth(view))]
+
+    def estimate(self, view, rec, fp, bias, values, maps):
         n, kind = int(values["kernel"]), values["filter"]
         c = scalar(values, "exponent")
-        z = normalised_depth(view)
-        (E,) = bilinear(view, blur(view, [dr.exp(c * z)], n, kind), fp)
+        (E,) = bilinear(view, maps, fp)
         raw = dr.exp(dr.log(E) - c * rec["zn"])
         vis = dr.clip(raw, 0.0, 1.0)
         mode = values["fallback"]
@@ -118,7 +120,7 @@ class ESM(PrefilteredTechnique):
         if mode == "threshold":
             flag = raw > 1.0 + scalar(values, "threshold_eps")
         else:
-            flag = rec["zn"] < corner_max(view, max_filter(view, z, n), fp)
+            flag = rec["zn"] < corner_max(view, max_filter(view, normalised_depth(view), n), fp)
         flag &= rec["active"]
         vis = dr.select(flag, pcf_footprint(view, rec, fp, bias, n, kind), vis)
         return vis, {"fallback": dr.select(flag, 1.0, 0.0)}, {"fallback": device_count(flag)}

@@ -47,7 +47,7 @@ import drjit as dr
 from .base import Param, param_table_markdown, register
 from .esm import FP32_EXP_LIMIT, fp32_cap_error
 from .prefilter import (BLEED, FILTER_PARAMS, MAP_PARAMS, MIN_VARIANCE, RECEIVER_PARAMS, PrefilteredTechnique, bilinear,
-                        blur, chebyshev, normalised_depth, reduction, scalar)
+                        chebyshev, normalised_depth, reduction, scalar)
 
 #: exp(2k) must be a finite fp32 number
 EVSM_EXP_LIMIT = 44.36
@@ -88,22 +88,25 @@ class EVSM(PrefilteredTechnique):
                                          "exp(2k·w) (the second moment of the warped depth)")
         return super().resolve(overrides)
 
-    def shade(self, view, rec, fp, bias, values):
-        n, kind, comps = int(values["kernel"]), values["filter"], int(values["components"])
+    def moments(self, view, values):
+        w = 2.0 * normalised_depth(view) - 1.0
+        pos = dr.exp(scalar(values, "exp_pos") * w)
+        chans = [pos, pos * pos]
+        if int(values["components"]) == 4:
+            neg = -dr.exp(-scalar(values, "exp_neg") * w)
+            chans += [neg, neg * neg]
+        return chans
+
+    def estimate(self, view, rec, fp, bias, values, maps):
+        comps = int(values["components"])
         kp = scalar(values, "exp_pos")
         mv, bleed = scalar(values, "min_variance"), scalar(values, "bleed")
-        w = 2.0 * normalised_depth(view) - 1.0
         wr = 2.0 * rec["zn"] - 1.0
-        pos = dr.exp(kp * w)
-        chans = [pos, pos * pos]
-        if comps == 4:
-            kn = scalar(values, "exp_neg")
-            neg = -dr.exp(-kn * w)
-            chans += [neg, neg * neg]
-        m = bilinear(view, blur(view, chans, n, kind), fp)
+        m = bilinear(view, maps, fp)
         pr = dr.exp(kp * wr)
         vis = reduction(chebyshev(m[0], m[1], pr, (mv * 4.0 * kp * kp * pr) * pr), bleed)
         if comps == 4:
+            kn = scalar(values, "exp_neg")
             nr = -dr.exp(-kn * wr)
             vn = reduction(chebyshev(m[2], m[3], nr, (mv * 4.0 * kn * kn * nr) * nr), bleed)
             vis = dr.minimum(vis, vn)

@@ -47,7 +47,7 @@ from __future__ import annotations
 import drjit as dr
 
 from .base import Param, param_table_markdown, register
-from .prefilter import (BLEED, FILTER_PARAMS, MAP_PARAMS, RECEIVER_PARAMS, PrefilteredTechnique, bilinear, blur,
+from .prefilter import (BLEED, FILTER_PARAMS, MAP_PARAMS, RECEIVER_PARAMS, PrefilteredTechnique, bilinear,
                         normalised_depth, reduction, scalar)
 
 _EPS = 1e-20
@@ -124,10 +124,13 @@ class MSM(PrefilteredTechnique):
         + RECEIVER_PARAMS
     )
 
-    def shade(self, view, rec, fp, bias, values):
+    def moments(self, view, values):
         z = normalised_depth(view)
         z2 = z * z
-        m = bilinear(view, blur(view, [z, z2, z2 * z, z2 * z2], int(values["kernel"]), values["filter"]), fp)
+        return [z, z2, z2 * z, z2 * z2]
+
+    def estimate(self, view, rec, fp, bias, values, maps):
+        m = bilinear(view, maps, fp)
         a = scalar(values, "moment_bias")
         b = [dr.fma(mi_, 1.0 - a, 0.5 * a) for mi_ in m]
         G = hamburger4(b, rec["zn"] - scalar(values, "msm_depth_bias"))

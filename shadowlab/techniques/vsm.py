@@ -42,7 +42,7 @@ from __future__ import annotations
 
 from .base import param_table_markdown, register
 from .prefilter import (BLEED, FILTER_PARAMS, MAP_PARAMS, MIN_VARIANCE, RECEIVER_PARAMS, PrefilteredTechnique, bilinear,
-                        blur, chebyshev, normalised_depth, reduction, scalar)
+                        chebyshev, normalised_depth, reduction, scalar)
 
 
 @register
@@ -56,9 +56,12 @@ class VSM(PrefilteredTechnique):
     channels = 2
     params = FILTER_PARAMS + (MIN_VARIANCE, BLEED) + MAP_PARAMS + RECEIVER_PARAMS
 
-    def shade(self, view, rec, fp, bias, values):
+    def moments(self, view, values):
         z = normalised_depth(view)
-        m1, m2 = bilinear(view, blur(view, [z, z * z], int(values["kernel"]), values["filter"]), fp)
+        return [z, z * z]
+
+    def estimate(self, view, rec, fp, bias, values, maps):
+        m1, m2 = bilinear(view, maps, fp)
         p = chebyshev(m1, m2, rec["zn"], scalar(values, "min_variance"))
         return reduction(p, scalar(values, "bleed")), {}, {}
 
