@@ -92,15 +92,37 @@ def mi_x(gb):
     return mi.Vector3f(gb.p).x
 
 
-def test_a_render_is_one_stage_for_every_light_and_one_read_back(two):
-    """Both lights' visibility and AOVs come from one kernel; device stats come back as Python
-    numbers (pooled over lights like host ones); AOV images are read when first asked for and
-    pickle as a plain dict."""
+def _first_wait(fn):
+    """The name of the function where ``fn`` first waits for the device, None if it never does."""
+    import traceback
+
+    import drjit as dr
+    dr.sync_thread()
+    dr.set_flag(dr.JitFlag.ForbidSynchronization, True)
+    try:
+        fn()
+    except RuntimeError as e:
+        if "synchroniz" not in str(e):
+            raise
+        return traceback.extract_tb(e.__traceback__)[-1].name
+    finally:
+        dr.set_flag(dr.JitFlag.ForbidSynchronization, False)
+    return None
+
+
+def test_a_render_waits_for_the_device_once_after_every_light(two):
+    """Each light is one kernel (visibility, AOVs and device stats together), and nothing is read
+    back between lights: the one wait is the stats' read-back after the last light (none without
+    device stats); device stats come back as Python numbers (pooled over lights like host ones);
+    AOV images are read when first asked for and pickle as a plain dict."""
+    from shadowlab.techniques import get
     t = Two()
     t.render(two)
     r, jit = _jit_kernels(lambda: t.render(two))
     gb = two.gbuffer
-    assert len([k for k in jit if k["size"] == gb.size]) == 1       # stats and counts reduced in it
+    assert len([k for k in jit if k["size"] == gb.size]) == len(two.lights) == 2
+    assert _first_wait(lambda: t.render(two)) == "to_host"
+    assert _first_wait(lambda: get("hard").render(two)) is None
     valid = gb.valid.numpy()
     tot = cnt = 0
     for n in r.visibility:

@@ -398,16 +398,16 @@ class Technique:
 
     # -- the loop ------------------------------------------------------------------------------
     def render(self, frame, params: dict | None = None) -> ShadowResult:
-        """Resolve ``params``, :meth:`prepare`, then per light :meth:`render_light`; evaluate every
-        light's visibility and AOVs together (the render's one stage boundary: no light waits for
-        another's kernel or read-back) and gather the stats.
+        """Resolve ``params``, :meth:`prepare`, then per light :meth:`render_light` and the
+        evaluation of its visibility and AOVs (a kernel per light, none waited for: nothing is
+        read back between lights) and gather the stats.
 
         Stats layout: ``stats["lights"][light]`` holds the light's stats and, where the family
         reports them, ``maps`` (one dict per shadow map or tile); every per-light stat is also
         ``stats[stat][light]`` (plus ``["all"]``, pooled over lights, for a :class:`Pooled`
         mean); the family's global stats (:meth:`summarise`) sit at the top level. A stat may
         be a Dr.Jit array of width 1 (a reduction left on the device): every such value of the
-        render is read back at once, after the lights' evaluation."""
+        render is read back at once, after every light's kernel: the render's one wait."""
         values = self.resolve(params)
         why = self.unsupported(frame.light_spec)
         if why:
@@ -415,17 +415,19 @@ class Technique:
         ctx = RenderContext(self, values, every_light=True)
         self.prepare(frame, values, ctx)
         gb = frame.gbuffer
-        results = {light.name: self.render_light(frame, light, values, ctx) for light in frame.lights}
-        outputs = []
-        for r in results.values():
+        results = {}
+        for light in frame.lights:
+            r = results[light.name] = self.render_light(frame, light, values, ctx)
             extra = {k: dr.detach(a) for k, a in r.aovs.items()}
             if r.active is not None:
                 r.visibility = dr.select(r.active, r.visibility, 1.0)
                 r.colour = dr.select(r.active, r.colour, 1.0) if r.colour is not None else None
                 extra = {k: dr.select(r.active, a, 0.0) for k, a in extra.items()}
             r.aovs = extra
-            outputs += [r.visibility, *extra.values(), *(x for x in (r.active, r.colour) if x is not None)]
-        dr.eval(*outputs)
+            # a kernel per light, launched without waiting for it: one kernel for every light reads
+            # every light's map at once and loses the caches (measured on LLVM, many_lights at
+            # 320x180: pcss 589 vs 280 ms, dpsv 319 vs 241 ms, none faster together)
+            dr.eval(r.visibility, *extra.values(), *(x for x in (r.active, r.colour) if x is not None))
         host = to_host({ln: (r.stats, r.counts) for ln, r in results.items()})
         aovs = Images(gb.to_image)
         lights = {}

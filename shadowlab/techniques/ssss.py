@@ -467,7 +467,8 @@ class SSSS(ShadowMapTechnique):
         """Light ``light``'s contribution to its layer (steps 2–4 of the module docstring, its own
         work): its map, hard shadow, penumbra size, lit-volume membership, layer value (binary:
         the hard shadow; exponential: exp(−k(z − d)) where shadowed) and, with translucent
-        casters, its tint. Not evaluated: :meth:`prepare` evaluates every light's at once."""
+        casters, its tint. Evaluated: a kernel per light (its search reads the light's map; one kernel
+        for every light loses the caches, as ``Technique.render`` says), not waited for."""
         gb = frame.gbuffer
         coloured = frame.scene.has_translucent
         view = view_for(frame, light.name, values)
@@ -489,6 +490,7 @@ class SSSS(ShadowMapTechnique):
             ix, iy = texel_index(rec["u"]), texel_index(rec["v"])
             behind = depth_test(opaque.translucent, rec, ix, iy, ctx.bias) < 0.5
             tint = dr.select(rec["active"] & behind, opaque.tint(rec["face"], ix, iy), mi.Color3f(1.0))
+        dr.eval(hard, size, member, val, *([tint] if coloured else []))
         return dict(view=view, hard=hard, size=size, member=member, val=val, tint=tint)
 
     # -- what the lights share, once per render ---------------------------------------------------
@@ -533,8 +535,8 @@ class SSSS(ShadowMapTechnique):
             tw = [pack_rgba8([t.x, t.y, t.z, dr.select((t.x < 1.0) | (t.y < 1.0) | (t.z < 1.0), 1.0, 0.0)])[0]
                   for t in lt]
         words = pack_binary(lv) if values["layer_packing"] == "binary" else pack_rgba8(lv)
-        # every light's own work and the packed layers: one stage for all the lights
-        dr.eval(*words, *tw, *ls, *(per[n][k] for n in per for k in ("hard", "member")))
+        # the packed layers and the stored penumbrae: one stage for all the layers
+        dr.eval(*words, *tw, *ls)
         lv = unpack_binary(words, n_layers) if values["layer_packing"] == "binary" else unpack_rgba8(words, n_layers)
         lt = [unpack_rgba8([w], 4) for w in tw]
         # blur per layer, every layer's pass in one stage
