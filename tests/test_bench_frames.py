@@ -8,6 +8,7 @@ import drjit as dr
 import mitsuba as mi
 import pytest
 
+from conftest import CUDA  # noqa: E402  (tests/ is on the path)
 from shadowlab.bench import core, frames, record
 
 PLAN = (("contact", ("hard", "pcf")),)
@@ -87,7 +88,9 @@ def test_kernel_summary_counts_kernels_and_one_element_reads(mitsuba_backend):
         k = frames.kernel_summary(dr.kernel_history())
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
-    assert k["jit"] == 2 and k["memcpy"] >= 1 and k["memcpy_bytes"] >= 4 and k["execution_ms"] >= 0
+    assert k["jit"] == 2 and k["execution_ms"] >= 0
+    if not CUDA:                      # the CUDA backend logs no copies in the kernel history
+        assert k["memcpy"] >= 1 and k["memcpy_bytes"] >= 4
 
 
 def test_frames_is_a_part_and_size_belongs_to_it(tmp_path, capsys):

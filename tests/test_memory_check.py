@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import CUDA, llvm_only  # noqa: E402  (tests/ is on the path)
 from shadowlab import cli
 from shadowlab.errors import EnvironmentProblem
 from shadowlab.render import memory
@@ -23,6 +24,7 @@ def _mem_available() -> int:
     pytest.skip("no MemAvailable in /proc/meminfo")
 
 
+@llvm_only("on a GPU the free memory is the device's (cuMemGetInfo), not the host's")
 def test_free_memory_on_the_cpu_is_memavailable(mitsuba_backend):
     free, where = memory.free_memory()
     assert "MemAvailable" in where
@@ -80,7 +82,8 @@ def test_a_frame_that_does_not_fit_exits_3_before_any_work(command, tmp_path, ca
     rc = cli.main([a.replace("{out}", str(out)) for a in command])
     err = capsys.readouterr().err
     assert rc == 3, err
-    assert "needs about" in err and "GiB" in err and "MemAvailable" in err and "--resolution" in err, err
+    where = "cuMemGetInfo" if CUDA else "MemAvailable"
+    assert "needs about" in err and "GiB" in err and where in err and "--resolution" in err, err
     assert sorted(tmp_path.rglob("*")) == before
 
 

@@ -149,15 +149,18 @@ def gbuffer(scene, ss: int = 1, *, evaluated: bool = True) -> GBuffer:
 def film_uv(width: int, height: int, ss: int = 1):
     """Film coordinates of pixel (sub-)centres in the G-buffer's point order (mi.Point2f), made on
     the device: the values of :func:`shadowlab.render.camera.pixel_uv` rounded to float32,
-    computed as one correctly rounded division (2·(x·s + i) + 1) / (2·W·s) of exact integers (the
-    divisors are opaque: Dr.Jit turns a division by a literal into a product with its reciprocal,
-    which differs in the last bit)."""
+    computed as one correctly rounded division (2·(x·s + i) + 1) / (2·W·s) of exact integers. The
+    division is done in float64 and rounded to float32 once, which is the correctly rounded float32
+    quotient (53 ≥ 2·24 + 2 bits) on every backend: CUDA's float32 division is approximate, and
+    Dr.Jit turns a division by a literal into a product with its reciprocal (the divisors are
+    opaque)."""
     s = int(ss)
+    f64 = dr.float64_array_t(mi.Float)
     k = dr.arange(mi.UInt32, width * height * s * s)
     pix, sub = k // (s * s), k % (s * s)
-    u = mi.Float(2 * ((pix % width) * s + sub % s) + 1)
-    v = mi.Float(2 * ((pix // width) * s + sub // s) + 1)
-    return mi.Point2f(u / dr.opaque(mi.Float, 2 * width * s), v / dr.opaque(mi.Float, 2 * height * s))
+    u = f64(2 * ((pix % width) * s + sub % s) + 1)
+    v = f64(2 * ((pix // width) * s + sub // s) + 1)
+    return mi.Point2f(mi.Float(u / dr.opaque(f64, 2 * width * s)), mi.Float(v / dr.opaque(f64, 2 * height * s)))
 
 
 def evaluate(gb: GBuffer, *more) -> None:

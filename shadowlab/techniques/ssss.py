@@ -193,9 +193,12 @@ def store_penumbra(size, bits: int):
     if bits == 16:
         return mi.Float(dr.float16_array_t(mi.Float)(s))
     m = dr.max(s)
-    code = dr.round(dr.clip(s / m, 0.0, 1.0) * 255.0)
-    # 255 opaque: a division by a literal becomes a product with its reciprocal (another last bit)
-    return dr.select(m > 0.0, code * (m / dr.opaque(mi.Float, 255.0)), 0.0)
+    # divisions in float64, rounded to float32 once: the correctly rounded float32 quotient on every
+    # backend (CUDA's float32 division is approximate); 255 opaque, or Dr.Jit multiplies by 1/255
+    f64 = dr.float64_array_t(mi.Float)
+    m64 = f64(m)
+    code = dr.round(dr.clip(mi.Float(f64(s) / m64), 0.0, 1.0) * 255.0)
+    return dr.select(m > 0.0, code * mi.Float(m64 / dr.opaque(f64, 255.0)), 0.0)
 
 
 # ----------------------------------------------------------------------------------------------
