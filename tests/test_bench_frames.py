@@ -101,3 +101,17 @@ def test_frames_is_a_part_and_size_belongs_to_it(tmp_path, capsys):
     assert cli.main(["bench", "--only", "frames", "--size", "64by36", "--out", str(tmp_path / "c")]) == 2
     assert "WIDTHxHEIGHT" in capsys.readouterr().err
     assert not (tmp_path / "b").exists() and not (tmp_path / "c").exists()
+
+
+def test_goals_take_the_worst_technique_and_count_those_within():
+    def tech(total, gbuffer, over, views=0.001):
+        return {"new": {"total_s": total, "gbuffer_s": gbuffer, "light_views_s": views}, "new_over_limit": over,
+                "limit_s": 0.001}
+    res = {"scenes": {"contact": {"techniques": {"a": tech(0.008, 0.004, 3.0), "b": tech(0.012, 0.006, 6.0),
+                                                 "c": tech(0.009, 0.005, 4.0), "sdf": tech(0.5, 0.004, 90.0, 0.0)}}}}
+    rows = {r[0]: r[1:] for r in frames.goal_rows(res)}
+    new, over, many, gbuffer = (rows[g[0]] for g in frames.GOALS)
+    assert (round(new[1], 9), new[2], new[3]) == (12.0, 2, 3)                  # b's 12 ms; a and c within
+    assert (over[1], over[2], over[3]) == (6.0, 2, 3)
+    assert (round(gbuffer[1], 9), gbuffer[2], gbuffer[3]) == (5.0, 2, 3)          # the median; 4 and 5 ms within
+    assert many == (50.0, None, 0, 0)                                            # no many_lights in this run

@@ -263,6 +263,38 @@ def _kern(k: dict) -> str:
     return f"{k['jit']} + {other}"
 
 
+#: issue 29's goals on one H200 at 1920×1080: (what, scene, measure, at most); ``measure`` names the figure
+#: taken over the scene's techniques that cast light views (the SDF techniques cast none)
+GOALS = (
+    ("a shadow-map family's new frame, light views included, one light", "contact", "new_max_ms", 10.0),
+    ("the same frame over its raw ray cost", "contact", "over_limit_max", 5.0),
+    ("`many_lights` (16 lights), new frame", "many_lights", "new_max_ms", 50.0),
+    ("`make_frame` (G-buffer and unshadowed light), median", "contact", "gbuffer_median_ms", 5.0),
+)
+
+
+def goal_rows(res: dict) -> list:
+    """[(goal, at most, measured, how many of the techniques meet it, of how many)] of :data:`GOALS`
+    from a run's results (measured None where the run lacks the scene); "measured" is the worst
+    technique's figure, or the median for ``make_frame``."""
+    rows = []
+    for what, scene, measure, limit in GOALS:
+        d = res["scenes"].get(scene)
+        techs = {n: r for n, r in (d or {}).get("techniques", {}).items() if r["new"]["light_views_s"] > 0}
+        if measure == "new_max_ms":
+            vals = {n: 1e3 * r["new"]["total_s"] for n, r in techs.items()}
+        elif measure == "over_limit_max":
+            vals = {n: r["new_over_limit"] for n, r in techs.items() if r["limit_s"]}
+        else:
+            vals = {n: 1e3 * r["new"]["gbuffer_s"] for n, r in techs.items()}
+        if not vals:
+            rows.append((what, limit, None, 0, 0))
+            continue
+        v = sorted(vals.values())[len(vals) // 2] if measure == "gbuffer_median_ms" else max(vals.values())
+        rows.append((what, limit, v, sum(x <= limit for x in vals.values()), len(vals)))
+    return rows
+
+
 def markdown(res: dict) -> str:
     m = res["machine"]
     W, H = res["size"]
@@ -277,7 +309,16 @@ def markdown(res: dict) -> str:
              "(reductions, memsets, copies); copies: `Memcpy` entries (on LLVM, one-element reads; numpy readbacks "
              "leave none, and CUDA logs no copies). First sync: where a frame first waits for the device "
              "(`ForbidSynchronization`). Limit: texels cast + one tap per point and light, as raw `ray_test` rays "
-             "in one wavefront; virtual maps cast their tiles inside the technique at every render.", ""]
+             "in one wavefront; virtual maps cast their tiles inside the technique at every render.", "",
+             "## Goals", "", "Set for one H200 at 1920×1080 (on another machine or size they are shown for "
+             "comparison only), over the techniques that cast light views: the worst one's figure (the "
+             "median for `make_frame`) and how many meet the goal.", "",
+             "| goal | at most | measured | techniques within |", "|---|---|---|---|"]
+    for what, limit, v, ok, n in goal_rows(res):
+        unit = "×" if "raw" in what else " ms"
+        lines.append(f"| {what} | {limit:g}{unit} | {'–' if v is None else f'{v:.1f}{unit}'} | "
+                     f"{f'{ok} of {n}' if n else '–'} |")
+    lines.append("")
     for scene, d in res["scenes"].items():
         lines += [f"## `{scene}` ({d['lights']} light{'s' if d['lights'] != 1 else ''})", "",
                   "| technique | new frame | G-buffer | light views | technique | host | warm | kernels new / warm | "
