@@ -221,13 +221,10 @@ class LightResult:
 class RenderContext:
     """Per-render state the base hands to a family's :meth:`~Technique.prepare` and
     :meth:`~Technique.render_light`: the resolved ``values`` and :meth:`scalar`; a family
-    stores what it prepares once per render as attributes. ``every_light``: the base loop
-    renders every light of the frame with this context after ``prepare`` (so ``prepare`` may do
-    the lights' work together); False where a composing technique calls a family's ``evaluate``
-    with views of its own (``csm``'s cascades)."""
+    stores what it prepares once per render as attributes."""
 
-    def __init__(self, technique, values: dict, *, every_light: bool = False):
-        self.technique, self.values, self.every_light = technique, values, every_light
+    def __init__(self, technique, values: dict):
+        self.technique, self.values = technique, values
         self._scalars: dict = {}
 
     def scalar(self, name: str):
@@ -412,7 +409,7 @@ class Technique:
         why = self.unsupported(frame.light_spec)
         if why:
             raise InputError(why)
-        ctx = RenderContext(self, values, every_light=True)
+        ctx = RenderContext(self, values)
         self.prepare(frame, values, ctx)
         gb = frame.gbuffer
         results = {}

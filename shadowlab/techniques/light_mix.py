@@ -130,7 +130,7 @@ class LightMix(Technique):
             why = tech.unsupported(sub.light_spec)
             if why:
                 raise InputError(why)
-            sctx = RenderContext(tech, vals, every_light=True)   # the base loop renders the light
+            sctx = RenderContext(tech, vals)
             tech.prepare(sub, vals, sctx)
             ctx.subs[ln] = (tech, sub, vals, sctx)
 
