@@ -25,7 +25,8 @@ def bench(mitsuba_backend, tmp_path_factory):
 def test_the_record_has_the_part_machine_and_a_row_per_technique(bench):
     rec = bench["rec"]
     assert rec["part"] == "frames" and rec["machine"]["variant"] and rec["machine"]["cores"] >= 1
-    table = next(b for b in rec["blocks"] if b["type"] == "table")
+    goals, table = [b for b in rec["blocks"] if b["type"] == "table"][:2]
+    assert [r[0] for r in goals["rows"]] == [g[0] for g in frames.GOALS]
     for col in ("new frame", "G-buffer", "light views", "technique", "host", "warm", "kernels new / warm",
                 "first sync, new frame", "rays (texels + taps)", "limit"):
         assert col in table["columns"], col

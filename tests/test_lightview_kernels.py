@@ -99,3 +99,18 @@ def _looked_up(view, p):
     rec["z_decoded"] = view.proj.linear_depth(rec["d"])
     dr.eval(rec)
     return rec
+
+
+def test_a_warm_lookup_writes_no_camera_values_again(frame):
+    """The light camera's opaque scalars are made once per value: looking a view up again writes
+    nothing to the device (a ``dr.opaque`` per value and render was ~50 writes per light)."""
+    p = frame.gbuffer.p
+    view = _view(frame, "spot")
+    _looked_up(view, p)
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.sync_thread()
+        dr.kernel_history()
+        _looked_up(view, p)
+        dr.sync_thread()
+        writes = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.Memset]
+    assert not writes, len(writes)

@@ -61,6 +61,7 @@ same biased depth test as an opaque caster's, gets the colour.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -191,9 +192,15 @@ def opaque_values(kind, *values):
     """Python floats as opaque Dr.Jit scalars of type ``kind`` (its scalar type for vectors): they
     enter a kernel as data, so a light camera that moves reuses the compiled kernel. Each equals
     the literal it replaces, and a division by one is written ``x * dr.rcp(v)``, which is what
-    Dr.Jit makes of a division by a literal: the results keep their bits."""
+    Dr.Jit makes of a division by a literal: the results keep their bits. The scalars are made
+    once per value (each ``dr.opaque`` is a device write: about 50 per light and render before)."""
     kind = dr.value_t(kind) if dr.depth_v(kind) > 1 else kind
-    return [dr.opaque(kind, float(v)) for v in values]
+    return [_opaque(kind, float(v)) for v in values]
+
+
+@functools.lru_cache(maxsize=4096)
+def _opaque(kind, value: float):
+    return dr.opaque(kind, value)
 
 
 def face_rows(proj, face):
