@@ -134,11 +134,7 @@ def gbuffer(scene, ss: int = 1, *, evaluated: bool = True) -> GBuffer:
     bsdf = si.bsdf(ray)
     alb = bsdf.eval_diffuse_reflectance(si, valid) if hasattr(bsdf, "eval_diffuse_reflectance") else mi.Color3f(0.5)
     alb = dr.select(valid, alb, 0.0)
-    shapes = scene.mi_scene.shapes_dr()
-    # shape index: compare the hit shape pointer against each shape (few shapes, fixed loop)
-    sid = dr.full(mi.Int32, -1, dr.width(ray))
-    for idx in range(len(scene.shape_names)):
-        sid = dr.select(hit & (si.shape == dr.gather(type(shapes), shapes, idx)), idx, sid)
+    sid = dr.select(hit, dr.gather(mi.Int32, scene.shape_index, dr.reinterpret_array(mi.UInt32, si.shape), hit), -1)
     gb = GBuffer(width=W, height=H, ss=ss, si=si, rays=ray, p=si.p, n=n, ng=ng, valid=valid, distance=dist,
                  forward_depth=zd, reflectance=alb, shape=sid, view=scene.spec.camera)
     if evaluated:

@@ -27,6 +27,7 @@ and panels (:class:`Casters`); where all of it casts, the scene is its own.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field, replace
 
@@ -185,6 +186,16 @@ class Scene:
             return self
         return replace(self, mi_scene=o.mi_scene, shape_names=o.shape_names, light_shapes=o.light_shapes,
                        occluders=None)
+
+    @functools.cached_property
+    def shape_index(self):
+        """Mitsuba's registry id of each shape -> its index into ``shape_names`` (an mi.Int32 table,
+        −1 for any other id): the G-buffer's shape id is one gather, since Dr.Jit holds shape
+        pointers as registry ids. Made once per scene (one read of the ids), not in a frame."""
+        ids = np.asarray(dr.reinterpret_array(mi.UInt32, self.mi_scene.shapes_dr()).numpy(), np.int64)
+        table = np.full(int(ids.max()) + 1 if ids.size else 1, -1, np.int32)
+        table[ids] = np.arange(ids.size, dtype=np.int32)
+        return mi.Int32(table)
 
     @property
     def has_alpha(self) -> bool:
