@@ -10,6 +10,7 @@ import pickle
 import numpy as np
 import pytest
 
+from shadowlab.bench.frames import first_sync
 from shadowlab.techniques.base import LightResult, Pooled, Technique, device_count, device_total, to_host
 
 
@@ -93,21 +94,10 @@ def mi_x(gb):
 
 
 def _first_wait(fn):
-    """The name of the function where ``fn`` first waits for the device, None if it never does."""
-    import traceback
-
-    import drjit as dr
-    dr.sync_thread()
-    dr.set_flag(dr.JitFlag.ForbidSynchronization, True)
-    try:
-        fn()
-    except RuntimeError as e:
-        if "synchroniz" not in str(e):
-            raise
-        return traceback.extract_tb(e.__traceback__)[-1].name
-    finally:
-        dr.set_flag(dr.JitFlag.ForbidSynchronization, False)
-    return None
+    """The name of the function where ``fn`` first waits for the device (the bench's
+    :func:`~shadowlab.bench.frames.first_sync`), None if it never does."""
+    where = first_sync(fn)
+    return None if where is None else where.rsplit("(", 1)[1].rstrip(")")
 
 
 def test_a_render_waits_for_the_device_once_after_every_light(two):

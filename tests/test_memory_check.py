@@ -6,14 +6,17 @@ from pathlib import Path
 
 import pytest
 
-from conftest import CUDA, llvm_only  # noqa: E402  (tests/ is on the path)
+from conftest import llvm_only  # noqa: E402  (tests/ is on the path)
 from shadowlab import cli
 from shadowlab.errors import EnvironmentProblem
 from shadowlab.render import memory
 from shadowlab.scene.spec import scene_spec
 from shadowlab.techniques import base
 
-#: 16 lights (cube maps among them) at 8192², maps of 8192²: hundreds of GiB, more than any CPU here
+#: 16 lights (cube maps among them) at 8192², maps of 8192²: about 81 GiB, more than any CPU here (an
+#: H200's 139 GiB holds it: these tests read the CPU's real free memory, the GPU's refusal is tested
+#: with a small device below)
+HUGE_ON_GPU = "an H200 holds many_lights at 8192² with 8192² maps (about 81 GiB)"
 HUGE = ["many_lights", "--resolution", "8192x8192"]
 
 
@@ -76,17 +79,18 @@ def test_check_fits_names_needed_free_and_the_fix():
     ["fit", *HUGE, "--technique", "pcss", "--set", "pcss.resolution=8192", "--out", "{out}",
      "--save-preset", "{out}.toml"],
 ], ids=["compare", "sweep", "fit"])
+@llvm_only(HUGE_ON_GPU)
 def test_a_frame_that_does_not_fit_exits_3_before_any_work(command, tmp_path, capsys, mitsuba_backend):
     out = tmp_path / "out"
     before = sorted(tmp_path.rglob("*"))
     rc = cli.main([a.replace("{out}", str(out)) for a in command])
     err = capsys.readouterr().err
     assert rc == 3, err
-    where = "cuMemGetInfo" if CUDA else "MemAvailable"
-    assert "needs about" in err and "GiB" in err and where in err and "--resolution" in err, err
+    assert "needs about" in err and "GiB" in err and "MemAvailable" in err and "--resolution" in err, err
     assert sorted(tmp_path.rglob("*")) == before
 
 
+@llvm_only(HUGE_ON_GPU)
 def test_a_gate_that_does_not_fit_exits_3_before_any_gate_runs(tmp_path, capsys, mitsuba_backend):
     (tmp_path / "store").mkdir()
     gates = tmp_path / "store" / "gates.toml"

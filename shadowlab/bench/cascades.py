@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import datetime
 import math
-import os
 import tempfile
 from pathlib import Path
 
@@ -38,6 +37,7 @@ from ..io.png import write_bytes_atomic
 from ..metrics.bands import by_distance, by_label
 from ..pipeline import load_scene, reference, shimmer, technique_metrics
 from ..reference import store
+from ..render import memory
 from ..render.frame import make_frame
 from ..techniques import base
 from .timing import machine_text, render_evaluated, timed
@@ -56,19 +56,6 @@ SOURCE_FPS = {"map_size": {512: 158, 1024: 146, 2048: 103}, "kernel": {1: 146, 3
               "blend": {"off": 146, "on": 137}, "selection": {"interval": 146, "map": 143}}
 BASE = {"cascades": 3, "resolution": 1024, "filter": "pcf", "pcf_kernel": 1, "pcf_pattern": "grid",
         "selection": "interval", "blend": 0.0}
-#: host memory a light view's construction holds per texel (numpy float64 ray, hit, normal and
-#: light-space arrays: 364 B measured at 2048² on street, with headroom): the sweep runs a size only where
-#: that fits in half the machine's memory (an 8192² map: ~27 GB)
-BYTES_PER_TEXEL = 400
-
-
-def _memory_bytes() -> int:
-    try:
-        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):  # pragma: no cover - not POSIX
-        return 8 << 30
-
-
 def frame_time(frame, params: dict, repeats: int = 3, lookups: int = 7) -> dict:
     """Median seconds of the shadow pass (the cascades' maps cast afresh, ``repeats`` times) and
     of the lookup (the render with the maps cached, ``lookups`` times) of ``csm`` with
@@ -144,14 +131,14 @@ def bench_quality(res=(256, 144), total=3 * 1024 * 1024, counts=(1, 2, 3, 4, 5, 
     counts_rows = {n: _quality(frame, truth, "csm", {"cascades": n, "resolution": per(n)}) for n in counts}
     lam_rows = {lam: _quality(frame, truth, "csm", {"split_lambda": lam, "resolution": per(3)}) for lam in lambdas}
     one_map = _quality(frame, truth, "pcf", {"resolution": per(1)})
-    mem = _memory_bytes()
-    reached = [s for s in sweep if s * s * BYTES_PER_TEXEL <= mem // 2]
+    mem, _ = memory.free_memory()
+    reached = [s for s in sweep if memory.views_bytes([(1, s, 3)]) <= mem // 2]
     sweep_rows = {s: _quality(frame, truth, "csm", {"resolution": s}) for s in reached}
     return {"scene": SCENE, "resolution": list(frame.resolution), "total_texels": total, "counts": counts_rows,
             "lambdas": lam_rows, "one_map": one_map, "csm_equal": counts_rows.get(3), "sweep": sweep_rows,
             "sweep_not_run": [s for s in sweep if s not in reached],
-            "sweep_not_run_why": f"a light view holds ~{BYTES_PER_TEXEL} B of host arrays per texel while it is "
-                                 f"built; these sizes need more than half of this machine's {mem / 2**30:.0f} GiB"}
+            "sweep_not_run_why": f"three cascades of these sizes (shadowlab.render.memory.views_bytes) need more "
+                                 f"than half of the {mem / 2**30:.0f} GiB free"}
 
 
 def bench_shimmer(res=(256, 144), resolution: int = 1024, frames=None) -> dict:

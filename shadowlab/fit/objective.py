@@ -127,19 +127,25 @@ class Objective:
         if self.loss not in DIFFERENTIABLE_LOSSES:
             raise InputError(f"--loss {self.loss} has no gradient; use --method golden or grid")
         res = self.render(values)
+        return self._squared(res), res
+
+    def _squared(self, res):
         out = None
         for name in self.lights:
             d = self._pixel(res.visibility[name]) - self._T[name]
             term = dr.sum(self._W[name] * dr.square(d))
             out = term if out is None else out + term
-        return out, res
+        return out
 
     def value(self, values: dict) -> float:
         """Objective of ``values`` (forward only)."""
+        return self.value_of(self.render(values))
+
+    def value_of(self, res) -> float:
+        """Objective of a render already made (a ShadowResult of this frame and technique)."""
         if self.loss == "flip":
-            return self._flip(self.render(values))
-        loss, _ = self.loss_dr(values)
-        return float(loss[0])
+            return self._flip(res)
+        return float(self._squared(res)[0])
 
     def _flip(self, res) -> float:
         shaded = compose(self.frame, res.visibility, res.colour)

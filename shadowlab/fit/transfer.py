@@ -54,22 +54,23 @@ def transfer(scene: str, source: str, target: str, *, sets=None, preset=None, lo
     first = tgt.render(frame, eng_base)                       # the engine's shadow cameras at its settings
     mapped = T.transfer(frame, src, src_values, tgt, eng_base, first.stats)
     eng_t = tgt.resolve({**eng_base, **mapped["values"]})
+    res_s, res_t = src.render(frame, src_values), tgt.render(frame, eng_t)
     rec = {"scene": sc.name, "resolution": list(sc.resolution), "source": source, "target": target,
            "loss": obj_e.describe(), "source_values": {k: src_values[k] for k in src.fit_params(src_values)},
-           "source_loss": obj_s.report(obj_s.value(src_values)),
+           "source_loss": obj_s.report(obj_s.value_of(res_s)),
            "engine_defaults": {k: eng_base[k] for k in mapped["values"]}, "engine_kept": kept,
-           "engine_loss_defaults": obj_e.report(obj_e.value(eng_base)),
+           "engine_loss_defaults": obj_e.report(obj_e.value_of(first)),
            "transferred": mapped["values"], "spread": mapped["spread"], "points": mapped["points"],
-           "engine_loss_transferred": obj_e.report(obj_e.value(eng_t))}
+           "engine_loss_transferred": obj_e.report(obj_e.value_of(res_t))}
     # parity: the engine's map as many texels as shadowlab's, the values transferred for that map
     same = {**kept, **T.map_size(frame, src, src_values, tgt)}
-    if same != kept:
-        p_base = tgt.resolve(same)
+    eng_p, res_p = eng_t, res_t
+    p_base = tgt.resolve(same)
+    if p_base != eng_base:
         p_map = T.transfer(frame, src, src_values, tgt, p_base, tgt.render(frame, p_base).stats)
         eng_p = tgt.resolve({**p_base, **p_map["values"]})
-    else:
-        eng_p = eng_t
-    rec["parity"] = {**parity(frame, truth, src.render(frame, src_values), tgt.render(frame, eng_p)),
+        res_p = tgt.render(frame, eng_p)
+    rec["parity"] = {**parity(frame, truth, res_s, res_p),
                      "engine_values": {k: eng_p[k] for k in (*mapped["values"], *same)}}
     if fit_engine:
         own = execute(plan(target, frame, loss=loss, sets=kept), frame, truth, budget or Budget())

@@ -10,8 +10,9 @@ and from the scene's lights; a technique without a ``resolution`` casts no map o
 (SDF tracing, shadow volumes). Virtual maps ([Giegl 2007]) cast their tiles in wavefronts of
 :func:`shadowlab.render.tiles.chunk_texels`: one wavefront is counted; the tile textures they keep
 are not. The bytes per point and per texel below were measured (process RSS on ``contact``, the
-LLVM variant); a light view is built on the host, which holds :data:`BUILD_BYTES` a texel while
-it builds one map. The estimate is a floor, so a refusal is certain, not cautious.
+LLVM variant); a light view is one kernel (:func:`shadowlab.render.lightview.light_view`), which
+holds :data:`BUILD_BYTES` a texel beyond the map while it builds one. The estimate is a floor, so
+a refusal is certain, not cautious.
 
 Free memory: on the CPU (LLVM variant) the kernel's ``MemAvailable`` (``/proc/meminfo``; where there
 is none, the physical memory); on CUDA the driver's ``cuMemGetInfo`` of the current device (through ctypes on
@@ -35,11 +36,12 @@ from .tiles import chunk_texels
 GBUFFER_BYTES = 240
 #: bytes per shading point and light: the unshadowed light U_L and the technique's visibility
 LIGHT_BYTES = 16
-#: bytes per texel a light view keeps (quantised and decoded depth, slope, hit mask, Dr.Jit copies:
-#: 58 measured at 2048²)
-VIEW_BYTES = 56
-#: bytes per texel while one light view is built (its rays and hits on the host: 378 measured at 2048²)
-BUILD_BYTES = 360
+#: bytes per texel a light view keeps: its Dr.Jit arrays (quantised depth, decoded depth and slope as
+#: float32, the hit mask; numpy copies are made only where a technique reads them)
+VIEW_BYTES = 13
+#: bytes per texel beyond the view while one view is built: its one kernel keeps rays and hits in
+#: registers (peak 14 B a texel measured at 4096² on ``street``, the view's 13 included)
+BUILD_BYTES = 1
 #: bytes per texel of a virtual map's wavefront of tiles (one ray and its hit per texel)
 TILE_RAY_BYTES = 100
 

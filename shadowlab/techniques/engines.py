@@ -282,7 +282,7 @@ class EngineTechnique(Technique):
         """``values`` clipped to the declared ranges (the transfer's medians may fall outside)."""
         out = {}
         for k, v in values.items():
-            prm = next(p for p in self.params if p.name == k)
+            prm = self.param(k)
             lo = prm.lo if prm.lo is not None else v
             hi = prm.hi if prm.hi is not None else v
             out[k] = float(min(max(v, lo), hi))

@@ -45,13 +45,19 @@ from .shadow_map import (ShadowMapTechnique, map_settings, opaque_bias, receiver
 SOURCE = "[Buljan 2020, §2.3]"
 
 
-def _depth_per_unit(view, z: np.ndarray) -> np.ndarray:
-    """Stored (NDC) depth per world unit of light-space depth z in ``view``: 1/(f − n) for an
-    orthographic map, f·n / ((f − n)·z²) for a perspective one (d = f/(f − n)·(1 − n/z))."""
-    f0 = view.proj.faces[0]
-    n, f = float(f0.near), float(f0.far)
-    if f0.ortho:
-        return np.full_like(z, 1.0 / (f - n))
+def depth_per_unit(near: float, far: float, z: np.ndarray, ortho: bool) -> np.ndarray:
+    """Window (NDC) depth per world unit at depth z along a light camera's axis, the same for
+    Direct3D's and OpenGL's [0, 1] depth: 1/(f − n) for an orthographic map, f·n / ((f − n)·z²) for a
+    perspective one (d = f/(f − n)·(1 − n/z)).
+
+    >>> depth_per_unit(1.0, 3.0, np.array([1.0, 2.0]), False).tolist()
+    [1.5, 0.375]
+    >>> depth_per_unit(1.0, 3.0, np.ones(1), True).tolist()
+    [0.5]
+    """
+    n, f = float(near), float(far)
+    if ortho:
+        return np.full_like(z, 1.0 / (f - n), dtype=np.float64)
     return f * n / ((f - n) * np.maximum(z, 1e-12) ** 2)
 
 
@@ -73,7 +79,8 @@ def receiver_points(frame, technique: ShadowMapTechnique, values: dict, light_na
     cam = camera_at(camera, p)
     keep &= cam["inside"]
     scale = cam["texel"][keep] / texel[keep]                # engine texels per shadowlab texel, in world size
-    raster = np.asarray(b.numpy(), np.float64)[keep] / _depth_per_unit(view, z[keep])
+    f0 = view.proj.faces[0]
+    raster = np.asarray(b.numpy(), np.float64)[keep] / depth_per_unit(f0.near, f0.far, z[keep], f0.ortho)
     cos = np.abs(np.asarray(dr.dot(rec["ng"], to_light(view, gb.p)).numpy(), np.float64))[keep]
     dz = np.asarray(rec["zbias"].numpy(), np.float64)[keep] + raster * scale
     return ReceiverPoints(dz=dz, normal=float(values["normal_offset"]) * cam["texel"][keep], cos=cos,
@@ -101,17 +108,17 @@ def camera_at(camera: dict, p: np.ndarray) -> dict:
     z = rel @ (d / np.linalg.norm(d))
     lateral = np.maximum(np.abs(rel @ (right / np.linalg.norm(right))), np.abs(rel @ (up / np.linalg.norm(up))))
     n, f, N = float(camera["near"]), float(camera["far"]), int(camera["resolution"])
-    if camera["projection"] == "orthographic":
+    ortho = camera["projection"] == "orthographic"
+    if ortho:
         half = float(camera["halfHeight"])
         texel = np.full_like(z, 2.0 * half / N)
-        per_unit = np.full_like(z, 1.0 / (f - n))
         within = lateral <= half
     else:
         t = np.tan(np.radians(float(camera["fovY"])) / 2.0)
         texel = 2.0 * np.maximum(z, 0.0) * t / N
-        per_unit = f * n / ((f - n) * np.maximum(z, 1e-12) ** 2)
         within = lateral <= np.maximum(z, 0.0) * t
-    return {"z": z, "texel": texel, "depth_per_unit": per_unit, "inside": (z > n) & (z < f) & within}
+    return {"z": z, "texel": texel, "depth_per_unit": depth_per_unit(n, f, z, ortho),
+            "inside": (z > n) & (z < f) & within}
 
 
 def _matrix_camera(camera: dict, p: np.ndarray) -> dict:

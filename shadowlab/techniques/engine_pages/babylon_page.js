@@ -29,6 +29,7 @@ import { Constants } from '@babylonjs/core/Engines/constants.js';
 import { AppendSceneAsync } from '@babylonjs/core/Loading/sceneLoader.js';
 import '@babylonjs/core/Loading/loadingScreen.js';
 import '@babylonjs/loaders/glTF/2.0/index.js';
+import { lightItem, publish } from './page_common.js';
 
 const BABYLON = { Engine, Scene, Matrix, Vector3, Color3, Color4, UniversalCamera, Camera, DirectionalLight, SpotLight,
                   ShadowGenerator, CascadedShadowGenerator, StandardMaterial, Material, RenderTargetTexture, Texture,
@@ -39,13 +40,6 @@ const MAX_SPOT = Math.PI * 160 / 180;     // full cone
 // glTF's right-handed world as Babylon's left-handed one: the loader's __root__ node maps (x, y, z) to
 // (-x, y, z) (it scales z by -1 and turns 180° about y), so the truth's camera and lights are mapped alike
 const W3 = (v) => new BABYLON.Vector3(-v[0], v[1], v[2]);
-
-function b64(f32) {
-  const u8 = new Uint8Array(f32.buffer, f32.byteOffset, f32.byteLength);
-  let s = '';
-  for (let i = 0; i < u8.length; i += 0x8000) s += String.fromCharCode.apply(null, u8.subarray(i, i + 0x8000));
-  return btoa(s);
-}
 
 async function load(cfg) {
   const W = cfg.width, H = cfg.height;
@@ -225,36 +219,14 @@ async function render(p) {
     const gen = makeGenerator(type, light, p);
     const sh = new Float32Array(await draw(true));
     const lit = new Float32Array(await draw(false));
-    const n = S.W * S.H, v = new Float32Array(n);
-    let bad = 0;
-    for (let k = 0; k < n; k++) {
-      const u = lit[4 * k] + lit[4 * k + 1] + lit[4 * k + 2];
-      const s = sh[4 * k] + sh[4 * k + 1] + sh[4 * k + 2];
-      if (!(u > 1e-7)) { v[k] = 1.0; continue; }
-      const r = s / u;
-      if (r > 1.0 + 1e-4) bad++;
-      v[k] = Math.min(1.0, Math.max(0.0, r));
-    }
     const count = type === 'csm' ? gen.numCascades : 1;
     maps.push(type === 'csm' ? Array.from({ length: count }, () => ({ resolution: gen.getShadowMap().getSize().width }))
                              : [shadowCamera(gen, light)]);
     gen.dispose();
     [light.shadowMinZ, light.shadowMaxZ] = saved;
-    const item = { name: entry.name, vis: b64(v), above_one: bad };
-    if (!S.sentLit.has(entry.name)) {
-      // the unshadowed white-Lambert light (RGB), once per light and page: the engine's own direct light
-      const rgb = new Float32Array(3 * n);
-      for (let k = 0; k < n; k++) { rgb[3 * k] = lit[4 * k]; rgb[3 * k + 1] = lit[4 * k + 1]; rgb[3 * k + 2] = lit[4 * k + 2]; }
-      item.lit = b64(rgb);
-      S.sentLit.add(entry.name);
-    }
-    out.push(item);
+    out.push(lightItem(entry.name, lit, sh, S.W * S.H, S.sentLit));
   }
   return { lights: out, maps, ms: performance.now() - t0 };
 }
 
-// a rejected promise's value shown as text (Runtime.evaluate reports a bare rejection without it)
-const said = (f) => async (arg) => {
-  try { return await f(arg); } catch (e) { throw new Error((e && (e.stack || e.message)) || String(e)); }
-};
-window.shadowlab = { load: said(load), render: said(render), ready: true, S };
+publish(load, render, S);

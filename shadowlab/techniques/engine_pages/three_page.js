@@ -10,6 +10,7 @@
 import * as THREE from 'three';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import { CSM } from 'three/addons/csm/CSM.js';
+import { lightItem, publish } from './page_common.js';
 
 const TYPES = { basic: THREE.BasicShadowMap, pcf: THREE.PCFShadowMap, vsm: THREE.VSMShadowMap, csm: THREE.PCFShadowMap };
 const SHADOW_SIDE = { [THREE.FrontSide]: THREE.BackSide, [THREE.BackSide]: THREE.FrontSide,
@@ -17,13 +18,6 @@ const SHADOW_SIDE = { [THREE.FrontSide]: THREE.BackSide, [THREE.BackSide]: THREE
 
 const S = { };
 const MAX_SPOT = THREE.MathUtils.degToRad(80);
-
-function b64(f32) {
-  const u8 = new Uint8Array(f32.buffer, f32.byteOffset, f32.byteLength);
-  let s = '';
-  for (let i = 0; i < u8.length; i += 0x8000) s += String.fromCharCode.apply(null, u8.subarray(i, i + 0x8000));
-  return btoa(s);
-}
 
 // a shape with casts_shadows = false (the glb node's extras.shadowlab, which GLTFLoader puts in
 // userData): drawn and lit, never a caster
@@ -223,35 +217,13 @@ function render(p) {
     else setShadow(entry.light, p);
     draw(true, S.shadowed);
     draw(false, S.lit);
-    const n = S.W * S.H, v = new Float32Array(n), lit = S.lit, sh = S.shadowed;
-    let bad = 0;
-    for (let k = 0; k < n; k++) {
-      const u = lit[4 * k] + lit[4 * k + 1] + lit[4 * k + 2];
-      const s = sh[4 * k] + sh[4 * k + 1] + sh[4 * k + 2];
-      if (!(u > 1e-7)) { v[k] = 1.0; continue; }
-      const r = s / u;
-      if (r > 1.0 + 1e-4) bad++;
-      v[k] = Math.min(1.0, Math.max(0.0, r));
-    }
     const sm = S.csm ? S.csm.lights.map((l) => ({ resolution: l.shadow.mapSize.x }))
                      : [shadowCamera(entry.light)];
     maps.push(sm);
-    const item = { name: entry.name, vis: b64(v), above_one: bad };
-    if (!S.sentLit.has(entry.name)) {
-      // the unshadowed white-Lambert light (RGB), once per light and page: the engine's own direct light
-      const rgb = new Float32Array(3 * n);
-      for (let k = 0; k < n; k++) { rgb[3 * k] = lit[4 * k]; rgb[3 * k + 1] = lit[4 * k + 1]; rgb[3 * k + 2] = lit[4 * k + 2]; }
-      item.lit = b64(rgb);
-      S.sentLit.add(entry.name);
-    }
-    out.push(item);
+    out.push(lightItem(entry.name, S.lit, S.shadowed, S.W * S.H, S.sentLit));
     if (S.csm) { S.csm.remove(); S.csm = null; }
   }
   return { lights: out, maps, ms: performance.now() - t0 };
 }
 
-// a rejected promise's value shown as text (Runtime.evaluate reports a bare rejection without it)
-const said = (f) => async (arg) => {
-  try { return await f(arg); } catch (e) { throw new Error((e && (e.stack || e.message)) || String(e)); }
-};
-window.shadowlab = { load: said(load), render: said(render), ready: true, S };
+publish(load, render, S);
