@@ -53,8 +53,14 @@ def test_make_frame_is_one_kernel_and_reads_nothing_back(mitsuba_backend):
     from shadowlab.render.frame import make_frame
     from shadowlab.scene import load
     sc = load("two_lights", resolution=(40, 24))
+    with pytest.MonkeyPatch.context() as m:
+        m.setenv("SHADOWLAB_REPLAY", "0")              # traced: one kernel
+        make_frame(sc)
+        _, jit = _jit_kernels(lambda: make_frame(sc))
+        assert len(jit) == 1
     make_frame(sc)
-    fr, jit = _jit_kernels(lambda: make_frame(sc))
+    make_frame(sc)                                     # traced, then recorded (render/replay.py)
+    fr, jit = _jit_kernels(lambda: make_frame(sc))     # replayed: the recorded kernel
     assert len(jit) == 1
     gb = fr.gbuffer
     assert "mask" not in vars(gb) and "albedo" not in vars(gb)       # nothing read back yet

@@ -8,7 +8,9 @@ pass included) and [Tamás 2015, §7] its milliseconds. For every technique that
 1920×1080 by default (``--size WxH``), from one run:
 
 * **new frame**: ``make_frame`` (G-buffer and unshadowed light) on a fresh frame, then the
-  technique's render on it, every light view cast anew. Split into *G-buffer* (``make_frame``),
+  technique's render on it, every light view cast anew, after :data:`WARMUP_FRAMES` untimed new
+  frames (the G-buffer and the light views are replayed stages, :mod:`shadowlab.render.replay`:
+  the first frame traces them, the second records them). Split into *G-buffer* (``make_frame``),
   *light views* (the wall time of the calls to ``FrameContext.light_view`` and ``top_tree`` that
   cast a map or built a tree, each between ``dr.sync_thread()`` calls, the view evaluated), and
   *technique* (the render's wall time less its light views). *Host* is the part of the new frame's
@@ -63,6 +65,9 @@ PLAN = (("contact", None), ("two_lights", None), ("street", ("csm", "vtsm", "fvs
 SIZE = (1920, 1080)
 #: warm renders timed per technique (median)
 REPEATS = 5
+#: new frames before the timed one: the first traces and compiles every kernel, the second records the
+#: frame's stages (render/replay.py), so the timed one replays them, as every later frame of a run does
+WARMUP_FRAMES = 2
 _PACKAGE = str(Path(__file__).resolve().parents[1])
 _BENCH = str(Path(__file__).resolve().parent)
 
@@ -218,7 +223,8 @@ def measure(sc, name: str, *, repeats: int = REPEATS, raw_cache: dict | None = N
     """One technique on one loaded scene: new frame, warm, kernels, first syncs, raw limit."""
     t = base.get(name)
     p = t.resolve({})
-    new_frame(sc, t, p)                            # compiles every kernel: the timed frame is the next one
+    for _ in range(WARMUP_FRAMES):                 # compiles every kernel, then records the frame's stages
+        new_frame(sc, t, p)
     frame, r, split = new_frame(sc, t, p)
     warm = warm_frame(frame, t, p, repeats)
     sync_new = first_sync(lambda: render_evaluated(t, make_frame(sc), p))
@@ -301,7 +307,9 @@ def markdown(res: dict) -> str:
     lines = [f"# Technique frames ({res['date']})", "",
              f"Machine: {machine_text(m)}. All figures from one run at {W}×{H}"
              f"{' (--quick: small sizes, not for figures)' if res['quick'] else ''}.", "",
-             "New frame: `make_frame` and the render on a fresh frame, every light view cast anew (ms), split into "
+             f"New frame: `make_frame` and the render on a fresh frame, every light view cast anew (ms), after "
+             f"{WARMUP_FRAMES} untimed new frames (the first compiles the kernels, the second records the G-buffer "
+             "and light-view stages, which the timed frame replays, as every later frame of a run does), split into "
              "G-buffer, light views (the casts of maps and TOP trees, each synchronised) and technique (the rest "
              "of the render); host: the new frame's wall time in which no kernel ran (wall minus the kernels' "
              "execution times from Dr.Jit's kernel history; a share of the other three, not an addend). Warm: the "

@@ -27,6 +27,7 @@ from .camera import Camera
 from .gbuffer import GBuffer, gbuffer, vec_numpy
 from .gbuffer import evaluate as evaluate_gbuffer
 from .lightview import LightView, SceneSphere, light_view
+from .replay import replayed
 from .screen import Screen
 from .shading import unshadowed
 from .top_tree import TopTree, build_top_tree
@@ -199,7 +200,13 @@ def make_frame(scene, ss: int = 1, u_strata: int = 16, seed: int = 0) -> FrameCo
         U = {l.name: sdf_gbuffer.unshadowed(scene, gb, l.name, k=u_strata, seed=seed) for l in scene.spec.lights}
         sdf_gbuffer.evaluate(gb, *U.values())
     else:
-        gb = gbuffer(scene, ss=ss, evaluated=False)
-        U = {l.name: unshadowed(scene, gb, l.name, k=u_strata, seed=seed) for l in scene.spec.lights}
-        evaluate_gbuffer(gb, *U.values())
+        def stage(*_inputs):  # the scene's arrays are the inputs; the rest is the key's
+            gb = gbuffer(scene, ss=ss, evaluated=False)
+            U = {l.name: unshadowed(scene, gb, l.name, k=u_strata, seed=seed) for l in scene.spec.lights}
+            evaluate_gbuffer(gb, *U.values())
+            return gb.arrays(), U
+
+        arrays, U = replayed("frame", (scene.spec, int(ss), int(u_strata), int(seed)), stage, scene,
+                             scene.mi_scene, scene.sensor, scene.shape_index)
+        gb = GBuffer.of(scene, ss, arrays)
     return FrameContext(scene=scene, gbuffer=gb, unshadowed=U, sdf=sdf)

@@ -80,6 +80,21 @@ class GBuffer:
         """(H, W, ss²) int32: ``shape``."""
         return self._image(self.shape, np.int32)
 
+    #: the evaluated Dr.Jit fields (what :meth:`arrays` gives and :meth:`of` takes); ``rays`` stay lazy
+    ARRAYS = ("si", "p", "n", "ng", "valid", "distance", "forward_depth", "reflectance", "shape")
+
+    def arrays(self) -> dict:
+        """The evaluated Dr.Jit fields by name (:data:`ARRAYS`)."""
+        return {k: getattr(self, k) for k in self.ARRAYS}
+
+    @classmethod
+    def of(cls, scene, ss: int, arrays: dict, rays=None) -> "GBuffer":
+        """The G-buffer of ``scene``'s camera with the Dr.Jit fields ``arrays`` (:meth:`arrays`) and
+        the camera rays ``rays`` (None: :func:`camera_rays`, traced anew and left lazy)."""
+        W, H = scene.resolution
+        return cls(width=W, height=H, ss=ss, view=scene.spec.camera, rays=camera_rays(scene, ss) if rays is None else rays,
+                   **arrays)
+
     @property
     def size(self) -> int:
         return self.width * self.height * self.ss * self.ss
@@ -115,8 +130,7 @@ def gbuffer(scene, ss: int = 1, *, evaluated: bool = True) -> GBuffer:
     True
     """
 
-    W, H = scene.resolution
-    ray, _ = scene.sensor.sample_ray(0.0, 0.5, film_uv(W, H, ss), mi.Point2f(0.5))
+    ray = camera_rays(scene, ss)
     si = scene.mi_scene.ray_intersect(ray)
     if getattr(scene, "has_alpha", False):
         si = _through_alpha(scene.mi_scene, si, ray)
@@ -135,11 +149,17 @@ def gbuffer(scene, ss: int = 1, *, evaluated: bool = True) -> GBuffer:
     alb = bsdf.eval_diffuse_reflectance(si, valid) if hasattr(bsdf, "eval_diffuse_reflectance") else mi.Color3f(0.5)
     alb = dr.select(valid, alb, 0.0)
     sid = dr.select(hit, dr.gather(mi.Int32, scene.shape_index, dr.reinterpret_array(mi.UInt32, si.shape), hit), -1)
-    gb = GBuffer(width=W, height=H, ss=ss, si=si, rays=ray, p=si.p, n=n, ng=ng, valid=valid, distance=dist,
-                 forward_depth=zd, reflectance=alb, shape=sid, view=scene.spec.camera)
+    gb = GBuffer.of(scene, ss, rays=ray, arrays={"si": si, "p": si.p, "n": n, "ng": ng, "valid": valid, "distance": dist,
+                                "forward_depth": zd, "reflectance": alb, "shape": sid})
     if evaluated:
         evaluate(gb)
     return gb
+
+
+def camera_rays(scene, ss: int = 1):
+    """The camera rays through the pixel (sub-)centres (mi.Ray3f, lazy), in the G-buffer's point order."""
+    W, H = scene.resolution
+    return scene.sensor.sample_ray(0.0, 0.5, film_uv(W, H, ss), mi.Point2f(0.5))[0]
 
 
 def film_uv(width: int, height: int, ss: int = 1):

@@ -73,6 +73,7 @@ from ..errors import InputError
 from ..scene import lights as lights_mod
 from ..scene.build import surface_tau, transparent
 from .camera import Camera
+from .replay import replayed
 
 MAX_HALF_FOV = math.radians(80.0)
 
@@ -514,6 +515,11 @@ class FaceConstants:
         self._table = None if self._one else mi.Float64(np.asarray(rows, np.float64).ravel())
         self._cache = {}
 
+    @property
+    def data(self):
+        """The Dr.Jit arrays the values are read from (the inputs of a kernel that reads them)."""
+        return self._one if self._one is not None else self._table
+
     def get(self, face, name: str):
         """The value ``name`` (a :data:`FACE_FIELDS` entry) of each texel's ``face`` (UInt32)."""
         k = FACE_FIELDS.index(name)
@@ -739,11 +745,10 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     formats are traced into one kernel and evaluated once, when the view is returned.
     """
 
-    scene = scene.casters  # the map holds what casts shadows (``casts_shadows``)
+    owner, scene = scene, scene.casters  # the map holds what casts shadows (``casts_shadows``)
     proj = projection(light, scene, res, fit)
     bits = int(bits or light.depth_bits)
     consts = FaceConstants(proj)
-    face, o64, d64 = _texel_rays(proj, consts)
     f0 = proj.faces[0]
     # start past the light's own surface: spheres at their radius, planar lights just in front
     start = light.radius * 1.001 if light.kind in ("sphere", "point") else 1e-5 * scene.radius
@@ -759,22 +764,38 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
             start = min(start, float(np.min((_corners(scene) - np.array(f0.origin)) @ np.array(f0.R[2])))
                         - 1e-3 * scene.radius)
     t0 = dr.opaque(mi.Float64, start)
-    d = mi.Vector3f(*[mi.Float(a) for a in d64])
-    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o64[c] + d64[c] * t0) for c in range(3)]), d)
     own = scene.light_shapes.get(light.name)
     shapes = scene.mi_scene.shapes_dr()
     own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
     alpha = bool(getattr(scene, "has_alpha", False))
     table = scene.translucency() if translucent and getattr(scene, "has_translucent", False) else None
+    clip_plane = _clip_plane(f0) if clip else None
+
+    def stage(*_inputs):  # the arrays it reads are the inputs; the rest is the key's
+        return _cast_view(scene, proj, consts, bits, t0, backface, own_ptr, alpha, table, clip_plane, layers)
+
+    # the light and its camera are inputs (t0, consts, clip_plane): a moved light replays the recording
+    key = (proj.res, len(proj.faces), f0.ortho, bits, bool(backface),
+           own is not None, alpha, table is not None, clip, int(layers))
+    maps, near = replayed("light_view", key, stage, owner, scene.mi_scene, consts.data, t0, own_ptr, table,
+                          clip_plane)
+    near = None if near is None else LightView(light=light, proj=proj, bits=bits, backface=backface, maps=near)
+    return LightView(light=light, proj=proj, bits=bits, backface=backface, maps=maps, translucent=near)
+
+
+def _cast_view(scene, proj, consts, bits, t0, backface, own_ptr, alpha, table, clip_plane, layers):
+    """:func:`light_view`'s kernel: (maps, the nearest translucent casters' maps or None), evaluated."""
+    face, o64, d64 = _texel_rays(proj, consts)
+    d = mi.Vector3f(*[mi.Float(a) for a in d64])
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o64[c] + d64[c] * t0) for c in range(3)]), d)
     maps, near = {}, None
     if table is None:
         si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha,
-                            near_clip=_near_clip(proj, o64, d64, d) if clip else None)
+                            near_clip=_near_clip(o64, d64, d, clip_plane) if clip_plane else None)
     else:
         si, tau, first = cast_translucent(scene.mi_scene, ray, backface, own_ptr, alpha, table)
         h, s, dq, zq = _texel_depths(proj, consts, face, first, bits)
-        near = LightView(light=light, proj=proj, bits=bits, backface=backface,
-                         maps={"depth": dq, "z": zq, "slope": s, "hit": h})
+        near = {"depth": dq, "z": zq, "slope": s, "hit": h}
         maps.update({f"trans_rgb{c}": mi.Float(tau[c]) for c in range(3)})
     h, s, dq, zq = _texel_depths(proj, consts, face, si, bits)
     maps.update({"depth": dq, "z": zq, "slope": s, "hit": h})
@@ -788,19 +809,23 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
         before = hk
     if ld:
         maps.update({"layer_depth": dr.concat(ld), "layer_slope": dr.concat(ls)})
-    arrays = list(maps.values()) + ([] if near is None else list(near.maps.values()))
-    dr.eval(*arrays)  # the light view is a stage boundary: one evaluation of every map
-    return LightView(light=light, proj=proj, bits=bits, backface=backface, maps=maps, translucent=near)
+    dr.eval(maps, near)  # the light view is a stage boundary: one evaluation of every map
+    return maps, near
 
 
-def _near_clip(proj, o64, d64, d):
-    """:func:`cast_first_hit`'s ``near_clip`` for orthographic ``proj``: each texel's ray from the
-    near plane, and the plane (the camera's position, forward axis and near distance, opaque)."""
-    f0 = proj.faces[0]
-    t_near = dr.opaque(mi.Float64, min(0.0, f0.near))
-    o_near = mi.Point3f(*[mi.Float(o64[c] + d64[c] * t_near) for c in range(3)])
-    return (mi.Ray3f(o_near, d), mi.Point3f(*[dr.opaque(mi.Float, x) for x in f0.origin]),
+def _clip_plane(f0):
+    """The near plane of an orthographic face as opaque data: (ray start along the texel rays, the
+    camera's position, forward axis, near distance)."""
+    return (dr.opaque(mi.Float64, min(0.0, f0.near)), mi.Point3f(*[dr.opaque(mi.Float, x) for x in f0.origin]),
             mi.Vector3f(*[dr.opaque(mi.Float, x) for x in f0.R[2]]), dr.opaque(mi.Float, f0.near))
+
+
+def _near_clip(o64, d64, d, clip_plane):
+    """:func:`cast_first_hit`'s ``near_clip`` for an orthographic face: each texel's ray from the
+    near plane, and the plane (:func:`_clip_plane`)."""
+    t_near, origin, forward, near = clip_plane
+    o_near = mi.Point3f(*[mi.Float(o64[c] + d64[c] * t_near) for c in range(3)])
+    return (mi.Ray3f(o_near, d), origin, forward, near)
 
 
 def _texel_depths(proj, consts: FaceConstants, face, si, bits):

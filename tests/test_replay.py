@@ -1,0 +1,159 @@
+"""Frame stages traced once and replayed (render/replay.py): a replayed G-buffer or light view has the
+bits of the stage traced afresh (``SHADOWLAB_REPLAY=0``), for every configuration the key tells
+apart, for a second scene object and for a moved light, which replay one recording."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lightview_scene import SCENE
+from scene_builder import build_scene
+
+
+def _arrays(obj) -> list:
+    """Every Dr.Jit array of a frame's G-buffer and U_L, or of a light view's maps, as numpy."""
+    from shadowlab.render.gbuffer import GBuffer
+    if isinstance(obj, GBuffer):
+        gb = obj
+        out = [gb.p, gb.n, gb.ng, gb.valid, gb.distance, gb.forward_depth, gb.reflectance, gb.shape,
+               gb.si.uv, gb.si.sh_frame.s, gb.rays.d]
+    else:
+        out = [obj.maps[k] for k in sorted(obj.maps)]
+        if obj.translucent is not None:
+            out += [obj.translucent.maps[k] for k in sorted(obj.translucent.maps)]
+    return [np.asarray(a.numpy()) for a in out]
+
+
+def _equal(a, b) -> bool:
+    return len(a) == len(b) and all(x.shape == y.shape and np.array_equal(x, y) for x, y in zip(a, b))
+
+
+def _traced(monkeypatch, fn):
+    with monkeypatch.context() as m:
+        m.setenv("SHADOWLAB_REPLAY", "0")
+        return fn()
+
+
+@pytest.fixture
+def fresh(mitsuba_backend):
+    from shadowlab.render import replay
+    replay.clear()
+    yield replay
+    replay.clear()
+
+
+@pytest.mark.parametrize("name", ["two_lights", "foliage"])
+def test_a_replayed_frame_has_the_traced_bits(fresh, monkeypatch, name):
+    """make_frame replayed equals make_frame traced, G-buffer and every light's U_L (alpha-tested
+    casters included); a scene loaded anew gets its own recording, with the same bits."""
+    from shadowlab.render.frame import make_frame
+    from shadowlab.scene import load
+    sc = load(name, resolution=(40, 24))
+    want = _traced(monkeypatch, lambda: make_frame(sc, u_strata=2))
+    again = load(name, resolution=(40, 24))
+    frames = [make_frame(sc, u_strata=2) for _ in range(3)] + [make_frame(again, u_strata=2) for _ in range(2)]
+    for f in frames:
+        assert _equal(_arrays(f.gbuffer), _arrays(want.gbuffer))
+        assert _equal([np.asarray(u.numpy()) for u in f.unshadowed.values()],
+                      [np.asarray(u.numpy()) for u in want.unshadowed.values()])
+    assert not fresh._failed
+    assert [fresh.recordings("frame", (s.spec, 1, 2, 0), s) for s in (sc, again)] == [1, 1]
+    # another seed is another key: its own trace, not the recording of seed 0
+    other = make_frame(sc, u_strata=2, seed=1)
+    assert not _equal([np.asarray(u.numpy()) for u in other.unshadowed.values()],
+                      [np.asarray(u.numpy()) for u in want.unshadowed.values()])
+    assert _equal(_arrays(other.gbuffer), _arrays(want.gbuffer))
+
+
+def _configs():
+    from shadowlab.render.lightview import FrustumSlice, TileRect
+    return [("spot", {}), ("spot", {"bits": 16}), ("spot", {"backface": True}), ("spot", {"layers": 3}),
+            ("spot", {"fit": TileRect(0.0, 0.0, 0.5, 0.5)}), ("panel", {}), ("bulb", {}), ("bulb", {"layers": 2}),
+            ("sun", {}), ("sun", {"fit": FrustumSlice(0.5, 6.0, near_plane="light")}),
+            ("sun", {"fit": FrustumSlice(0.5, 6.0, near_plane="pancake"), "res": 16}), ("spot", {"res": 16})]
+
+
+def test_replayed_light_views_have_the_traced_bits(fresh, monkeypatch):
+    """Every light kind (cube map, perspective, orthographic), depth format, back faces, layers,
+    near-plane clipping and map size, each right after another configuration: replayed views equal
+    the traced ones, and each configuration is recorded once however often it is asked for."""
+    from shadowlab.render.lightview import light_view
+    sc = build_scene(SCENE, "lightview.toml")
+    configs = _configs()
+
+    def view(light, kw):
+        kw = {"res": 32, **kw}
+        return light_view(sc, sc.spec.light(light), **kw)
+
+    want = [_traced(monkeypatch, lambda: view(light, kw)) for light, kw in configs]
+    for _ in range(3):                  # traced, recorded, replayed
+        for (light, kw), w in zip(configs, want):
+            assert _equal(_arrays(view(light, kw)), _arrays(w)), (light, kw)
+    assert not fresh._failed
+    assert all(s.frozen.n_recordings == 1 for s in fresh._stages.values())
+
+
+def test_a_moved_light_camera_replays_the_recording(fresh, monkeypatch):
+    """Light cameras that move (cascades' slices, virtual maps' tiles, the scene's other lights of a
+    kind) are inputs of one recording: each view equals the view traced afresh for its camera."""
+    from shadowlab.render.lightview import FrustumSlice, TileRect, light_view
+    sc = build_scene(SCENE, "lightview.toml")
+    for light, fits in (("sun", [FrustumSlice(0.5, 2.0, near_plane="light"), FrustumSlice(2.0, 6.0, 0.5, near_plane="light"),
+                                 FrustumSlice(1.0, 3.0, 1.0, near_plane="light"), FrustumSlice(0.2, 1.0, near_plane="light")]),
+                        ("spot", [TileRect(-1.0, -1.0, 0.0, 0.0), TileRect(0.0, 0.0, 0.5, 0.5), None,
+                                  TileRect(-0.5, 0.0, 0.0, 0.5)])):
+        fresh.clear()
+        views = []
+        for fit in fits:
+            got = light_view(sc, sc.spec.light(light), res=32, fit=fit)
+            want = _traced(monkeypatch, lambda: light_view(sc, sc.spec.light(light), res=32, fit=fit))
+            assert _equal(_arrays(got), _arrays(want)), (light, fit)
+            views.append(_arrays(got))
+        assert not _equal(views[0], views[1])
+        assert len(fresh._stages) == 1 and next(iter(fresh._stages.values())).frozen.n_recordings == 1
+
+
+def test_translucent_views_replay(fresh, monkeypatch):
+    """The translucent casters' τ product and nearest-caster view replay with their bits."""
+    from shadowlab.render.lightview import light_view
+    from shadowlab.scene import load
+    sc = load("many_lights", resolution=(32, 18))
+    lights = [l for l in sc.spec.lights][:3]
+    want = [_traced(monkeypatch, lambda: light_view(sc, l, res=32, translucent=True)) for l in lights]
+    for _ in range(3):
+        for l, w in zip(lights, want):
+            got = light_view(sc, l, res=32, translucent=True)
+            assert got.translucent is not None and _equal(_arrays(got), _arrays(w))
+    assert not fresh._failed
+
+
+def test_objects_made_after_a_recording_make_it_record_again(fresh, monkeypatch):
+    """A recording that calls through pointers (the alpha test of foliage's leaf cards reads their
+    BSDFs) cannot be replayed once more objects are registered with Dr.Jit (another scene loaded):
+    the stage records again and keeps its bits."""
+    from shadowlab.render.lightview import light_view
+    from shadowlab.scene import load
+    sc = load("foliage", resolution=(32, 18))
+    light = sc.spec.lights[0]
+    want = _traced(monkeypatch, lambda: light_view(sc, light, res=32))
+    for _ in range(2):
+        assert _equal(_arrays(light_view(sc, light, res=32)), _arrays(want))
+    others = [load("two_lights", resolution=(8, 6)), load("contact", resolution=(8, 6))]
+    for _ in range(2):
+        assert _equal(_arrays(light_view(sc, light, res=32)), _arrays(want))
+    assert not fresh._failed and len(others) == 2
+
+
+def test_a_stage_that_reads_an_array_it_was_not_given_is_traced_each_time(fresh):
+    """Dr.Jit refuses to record a stage that reads an array from outside its inputs; the stage then
+    runs traced, with the right values each time (a recording would have kept the first call's)."""
+    import drjit as dr
+    import mitsuba as mi
+    outside = mi.Float(1.0, 2.0)
+    dr.eval(outside)
+    for v in (3.0, 5.0, 7.0):
+        x = mi.Float(v)
+        got = fresh.replayed("reads_outside", (), lambda x: x + outside, fresh, x)
+        assert got.numpy().tolist() == [v + 1.0, v + 2.0]
+    assert ("reads_outside", (), id(fresh)) in fresh._failed
