@@ -356,10 +356,19 @@ def _frame(fwd, up):
     return np.stack([r, u, f])
 
 
+#: which of a box's (min, max) each of its 8 corners takes per axis, x slowest
+_CORNER = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)])
+
+
 def _corners(scene):
-    """Corners of every non-emitting shape's bounding box (tighter than the scene's box)."""
-    return np.array([[x, y, z] for lo, hi in scene.shape_boxes
-                     for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    """Corners of every non-emitting shape's bounding box (tighter than the scene's box), (8·S, 3).
+
+    >>> from types import SimpleNamespace
+    >>> _corners(SimpleNamespace(shape_boxes=[((0, 0, 0), (1, 2, 3))]))[[0, 1, 7]].tolist()
+    [[0.0, 0.0, 0.0], [0.0, 0.0, 3.0], [1.0, 2.0, 3.0]]
+    """
+    boxes = np.asarray(scene.shape_boxes, np.float64).reshape(-1, 2, 3)
+    return boxes[:, _CORNER, np.arange(3)].reshape(-1, 3)
 
 
 def _near_far(light, o, scene):
