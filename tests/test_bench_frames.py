@@ -114,5 +114,11 @@ def test_goals_take_the_worst_technique_and_count_those_within():
     new, over, many, gbuffer = (rows[g[0]] for g in frames.GOALS)
     assert (round(new[1], 9), new[2], new[3]) == (12.0, 2, 3)                  # b's 12 ms; a and c within
     assert (over[1], over[2], over[3]) == (6.0, 2, 3)
+    # street's families count in the one-light goals too, a virtual map (its tiles cast inside the
+    # technique: no light-view time, but texels) among them
+    res["scenes"]["street"] = {"techniques": {"vt": {**tech(0.2, 0.01, 40.0, 0.0), "texels": 10}}}
+    rows = {r[0]: r[1:] for r in frames.goal_rows(res)}
+    new, over = (rows[g[0]] for g in frames.GOALS[:2])
+    assert (round(new[1], 9), new[2], new[3]) == (200.0, 2, 4) and (over[1], over[3]) == (40.0, 4)
     assert (round(gbuffer[1], 9), gbuffer[2], gbuffer[3]) == (5.0, 2, 3)          # the median; 4 and 5 ms within
     assert many == (50.0, None, 0, 0)                                            # no many_lights in this run

@@ -157,3 +157,26 @@ def test_a_stage_that_reads_an_array_it_was_not_given_is_traced_each_time(fresh)
         got = fresh.replayed("reads_outside", (), lambda x: x + outside, fresh, x)
         assert got.numpy().tolist() == [v + 1.0, v + 2.0]
     assert ("reads_outside", (), id(fresh)) in fresh._failed
+
+
+def test_a_lights_cascades_are_cast_in_one_stage(fresh, monkeypatch):
+    """``light_views`` casts the cascades of a light in one stage and one kernel (one walk of the scene
+    per replay, not one per cascade); each map equals the one ``light_view`` traces for it alone."""
+    import drjit as dr
+
+    from shadowlab.render.lightview import FrustumSlice, light_view, light_views
+    sc = build_scene(SCENE, "lightview.toml")
+    sun = sc.spec.light("sun")
+    fits = [FrustumSlice(0.5, 1.5, near_plane="light"), FrustumSlice(1.5, 3.0, near_plane="light"),
+            FrustumSlice(3.0, 6.0, near_plane="light")]
+    want = [_traced(monkeypatch, lambda: light_view(sc, sun, res=32, fit=f)) for f in fits]
+    for _ in range(3):                  # traced, recorded, replayed
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.sync_thread()
+            dr.kernel_history()
+            got = light_views(sc, sun, fits, res=32)
+            dr.sync_thread()
+            jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+        assert len(jit) == 1 and jit[0]["size"] == 32 * 32
+        assert all(_equal(_arrays(g), _arrays(w)) for g, w in zip(got, want))
+    assert len(fresh._stages) == 1 and next(iter(fresh._stages.values())).frozen.n_recordings == 1

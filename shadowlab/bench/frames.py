@@ -96,12 +96,12 @@ class TimedFrame(FrameContext):
         dr.eval(out)
         dr.sync_thread()
         self.timing["views_s"] += time.perf_counter() - t0
-        self.timing["casts"] += int(made() != n)
+        self.timing["casts"] += made() - n
         self.timing["view_kernels"] += dr.kernel_history()
         return out
 
-    def light_view(self, *args, **kwargs):
-        return self._timed(lambda: super(TimedFrame, self).light_view(*args, **kwargs), lambda: len(self.light_views))
+    def light_views_of(self, *args, **kwargs):
+        return self._timed(lambda: super(TimedFrame, self).light_views_of(*args, **kwargs), lambda: len(self._views))
 
     def top_tree(self, *args, **kwargs):
         return self._timed(lambda: super(TimedFrame, self).top_tree(*args, **kwargs), lambda: 0)
@@ -272,10 +272,10 @@ def _kern(k: dict) -> str:
 #: issue 29's goals on one H200 at 1920×1080: (what, scene, measure, at most); ``measure`` names the figure
 #: taken over the scene's techniques that cast light views (the SDF techniques cast none)
 GOALS = (
-    ("a shadow-map family's new frame, light views included, one light", "contact", "new_max_ms", 10.0),
-    ("the same frame over its raw ray cost", "contact", "over_limit_max", 5.0),
-    ("`many_lights` (16 lights), new frame", "many_lights", "new_max_ms", 50.0),
-    ("`make_frame` (G-buffer and unshadowed light), median", "contact", "gbuffer_median_ms", 5.0),
+    ("a shadow-map family's new frame, light views included, one light", ("contact", "street"), "new_max_ms", 10.0),
+    ("the same frame over its raw ray cost", ("contact", "street"), "over_limit_max", 5.0),
+    ("`many_lights` (16 lights), new frame", ("many_lights",), "new_max_ms", 50.0),
+    ("`make_frame` (G-buffer and unshadowed light), median", ("contact",), "gbuffer_median_ms", 5.0),
 )
 
 
@@ -284,9 +284,9 @@ def goal_rows(res: dict) -> list:
     from a run's results (measured None where the run lacks the scene); "measured" is the worst
     technique's figure, or the median for ``make_frame``."""
     rows = []
-    for what, scene, measure, limit in GOALS:
-        d = res["scenes"].get(scene)
-        techs = {n: r for n, r in (d or {}).get("techniques", {}).items() if r["new"]["light_views_s"] > 0}
+    for what, scenes, measure, limit in GOALS:
+        techs = {(sc, n): r for sc in scenes for n, r in res["scenes"].get(sc, {}).get("techniques", {}).items()
+                 if r["new"]["light_views_s"] > 0 or r.get("texels", 0) > 0}   # virtual maps cast in the technique
         if measure == "new_max_ms":
             vals = {n: 1e3 * r["new"]["total_s"] for n, r in techs.items()}
         elif measure == "over_limit_max":
@@ -319,7 +319,8 @@ def markdown(res: dict) -> str:
              "(`ForbidSynchronization`). Limit: texels cast + one tap per point and light, as raw `ray_test` rays "
              "in one wavefront; virtual maps cast their tiles inside the technique at every render.", "",
              "## Goals", "", "Set for one H200 at 1920×1080 (on another machine or size they are shown for "
-             "comparison only), over the techniques that cast light views: the worst one's figure (the "
+             "comparison only), over the techniques that cast shadow maps on the goal's scenes (the one-light "
+             "goals: `contact`'s and `street`'s, cascades and virtual maps included): the worst one's figure (the "
              "median for `make_frame`) and how many meet the goal.", "",
              "| goal | at most | measured | techniques within |", "|---|---|---|---|"]
     for what, limit, v, ok, n in goal_rows(res):

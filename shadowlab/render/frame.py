@@ -26,7 +26,7 @@ from . import sdf_gbuffer
 from .camera import Camera
 from .gbuffer import GBuffer, gbuffer, vec_numpy
 from .gbuffer import evaluate as evaluate_gbuffer
-from .lightview import LightView, SceneSphere, light_view
+from .lightview import LightView, SceneSphere, light_views
 from .replay import replayed
 from .screen import Screen
 from .shading import unshadowed
@@ -138,19 +138,26 @@ class FrameContext:
         whole scene); ``layers`` > 1 keeps that many surfaces per texel (the rasterizer's bias);
         ``translucent`` (only in a scene with translucent shapes; ignored elsewhere): the opaque
         depth plus the translucent casters' colour and depth."""
+        return self.light_views_of(light_name, [fit], res=res, bits=bits, backface=backface, layers=layers,
+                                translucent=translucent)[0]
+
+    def light_views_of(self, light_name: str, fits, res: int | None = None, bits: int | None = None,
+                    backface: bool = False, layers: int = 1, translucent: bool = False) -> list:
+        """:meth:`light_view` for each fit of ``fits``; those not cast yet are cast together
+        (:func:`~shadowlab.render.lightview.light_views`: a light's cascades in one stage)."""
         spec = self.scene.spec.light(light_name)
         self.require_mitsuba_geometry()
-        fit = SceneSphere() if fit is None else fit
-        key = (light_name, int(res or spec.shadow_map), int(bits or spec.depth_bits), bool(backface), fit)
-        if layers > 1:
-            key += (int(layers),)
         translucent = bool(translucent and self.scene.has_translucent)
-        if translucent:
-            key += ("translucent",)
-        if key not in self._views:
-            self._views[key] = light_view(self.scene, spec, res=key[1], bits=key[2], backface=key[3], fit=fit,
-                                          layers=int(layers), translucent=translucent)
-        return self._views[key]
+        base = (light_name, int(res or spec.shadow_map), int(bits or spec.depth_bits), bool(backface))
+        tail = ((int(layers),) if layers > 1 else ()) + (("translucent",) if translucent else ())
+        fits = [SceneSphere() if f is None else f for f in fits]
+        keys = [base + (f,) + tail for f in fits]
+        missing = {k: f for k, f in zip(keys, fits) if k not in self._views}
+        if missing:
+            views = light_views(self.scene, spec, list(missing.values()), res=base[1], bits=base[2],
+                                backface=base[3], layers=int(layers), translucent=translucent)
+            self._views.update(zip(missing, views))
+        return [self._views[k] for k in keys]
 
     def triangles(self, segments: int = 64) -> np.ndarray:
         """The scene's triangles (T×3×3, world; :func:`~shadowlab.scene.mesh.scene_triangles`), made

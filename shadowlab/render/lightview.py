@@ -754,10 +754,59 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
     formats are traced into one kernel and evaluated once, when the view is returned.
     """
 
+    return light_views(scene, light, [fit], res=res, bits=bits, backface=backface, layers=layers,
+                       translucent=translucent)[0]
+
+
+@dataclass
+class _Cast:
+    """What one light view's kernel reads (a camera of ``projection``) and the Python values its
+    trace depends on (``key``)."""
+
+    proj: Projection
+    consts: FaceConstants
+    t0: object
+    clip_plane: object
+    key: tuple
+
+
+def light_views(scene, light, fits, res: int | None = None, bits: int | None = None, backface: bool = False,
+                layers: int = 1, translucent: bool = False) -> list:
+    """:func:`light_view` of ``light`` for each fit of ``fits`` (None: :class:`SceneSphere`), the
+    views of one configuration (faces, projection kind, clipping) cast in one stage (one kernel,
+    and one replay: the scene's arrays are walked once for all of a light's cascades)."""
     owner, scene = scene, scene.casters  # the map holds what casts shadows (``casts_shadows``)
-    proj = projection(light, scene, res, fit)
     bits = int(bits or light.depth_bits)
-    consts = FaceConstants(proj)
+    own = scene.light_shapes.get(light.name)
+    shapes = scene.mi_scene.shapes_dr()
+    own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
+    alpha = bool(getattr(scene, "has_alpha", False))
+    table = scene.translucency() if translucent and getattr(scene, "has_translucent", False) else None
+    casts = [_prepare(scene, light, projection(light, scene, res, fit)) for fit in fits]
+    out = [None] * len(casts)
+    for key in dict.fromkeys(c.key for c in casts):
+        which = [i for i, c in enumerate(casts) if c.key == key]
+        group = [casts[i] for i in which]
+
+        def stage(*_inputs, group=group):  # the arrays it reads are the inputs; the rest is the key's
+            views = [_cast_view(scene, c.proj, c.consts, bits, c.t0, backface, own_ptr, alpha, table, c.clip_plane,
+                                layers) for c in group]
+            dr.eval(views)  # the light views are a stage boundary: one evaluation of every map
+            return views
+
+        # the light and its cameras are inputs (t0, consts, clip_plane): a moved light replays the recording
+        full = key + (bits, bool(backface), own is not None, alpha, table is not None, int(layers), len(group))
+        views = replayed("light_view", full, stage, owner, scene.mi_scene, [c.consts.data for c in group],
+                         [c.t0 for c in group], own_ptr, table, [c.clip_plane for c in group])
+        for i, c, (maps, near) in zip(which, group, views):
+            near = None if near is None else LightView(light=light, proj=c.proj, bits=bits, backface=backface,
+                                                       maps=near)
+            out[i] = LightView(light=light, proj=c.proj, bits=bits, backface=backface, maps=maps, translucent=near)
+    return out
+
+
+def _prepare(scene, light, proj) -> _Cast:
+    """The inputs of ``proj``'s cast: its camera values, where its rays start, its clipping plane."""
     f0 = proj.faces[0]
     # start past the light's own surface: spheres at their radius, planar lights just in front
     start = light.radius * 1.001 if light.kind in ("sphere", "point") else 1e-5 * scene.radius
@@ -772,28 +821,12 @@ def light_view(scene, light, res: int | None = None, bits: int | None = None, ba
         if isinstance(proj.fit, FrustumSlice) and proj.fit.near_plane != "caster":
             start = min(start, float(np.min((_corners(scene) - np.array(f0.origin)) @ np.array(f0.R[2])))
                         - 1e-3 * scene.radius)
-    t0 = dr.opaque(mi.Float64, start)
-    own = scene.light_shapes.get(light.name)
-    shapes = scene.mi_scene.shapes_dr()
-    own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
-    alpha = bool(getattr(scene, "has_alpha", False))
-    table = scene.translucency() if translucent and getattr(scene, "has_translucent", False) else None
-    clip_plane = _clip_plane(f0) if clip else None
-
-    def stage(*_inputs):  # the arrays it reads are the inputs; the rest is the key's
-        return _cast_view(scene, proj, consts, bits, t0, backface, own_ptr, alpha, table, clip_plane, layers)
-
-    # the light and its camera are inputs (t0, consts, clip_plane): a moved light replays the recording
-    key = (proj.res, len(proj.faces), f0.ortho, bits, bool(backface),
-           own is not None, alpha, table is not None, clip, int(layers))
-    maps, near = replayed("light_view", key, stage, owner, scene.mi_scene, consts.data, t0, own_ptr, table,
-                          clip_plane)
-    near = None if near is None else LightView(light=light, proj=proj, bits=bits, backface=backface, maps=near)
-    return LightView(light=light, proj=proj, bits=bits, backface=backface, maps=maps, translucent=near)
+    return _Cast(proj, FaceConstants(proj), dr.opaque(mi.Float64, start), _clip_plane(f0) if clip else None,
+                 (proj.res, len(proj.faces), f0.ortho, clip))
 
 
 def _cast_view(scene, proj, consts, bits, t0, backface, own_ptr, alpha, table, clip_plane, layers):
-    """:func:`light_view`'s kernel: (maps, the nearest translucent casters' maps or None), evaluated."""
+    """One light view's maps and the nearest translucent casters' maps (or None), not evaluated."""
     face, o64, d64 = _texel_rays(proj, consts)
     d = mi.Vector3f(*[mi.Float(a) for a in d64])
     ray = mi.Ray3f(mi.Point3f(*[mi.Float(o64[c] + d64[c] * t0) for c in range(3)]), d)
@@ -818,7 +851,6 @@ def _cast_view(scene, proj, consts, bits, t0, backface, own_ptr, alpha, table, c
         before = hk
     if ld:
         maps.update({"layer_depth": dr.concat(ld), "layer_slope": dr.concat(ls)})
-    dr.eval(maps, near)  # the light view is a stage boundary: one evaluation of every map
     return maps, near
 
 

@@ -418,8 +418,8 @@ class CSM(Technique):
 
     def render_light(self, frame, light, values, ctx):
         res, bits = map_settings(frame, light.name, values)
-        views = [frame.light_view(light.name, res=res, bits=bits, backface=bool(values["backface"]), fit=fit,
-                                  layers=map_layers(values)) for fit in ctx.fits]
+        views = frame.light_views_of(light.name, ctx.fits, res=res, bits=bits, backface=bool(values["backface"]),
+                                     layers=map_layers(values))
         N = len(views)
         texel = [2.0 * v.proj.faces[0].scale / v.res for v in views]
         gb = frame.gbuffer
