@@ -180,3 +180,31 @@ def test_a_lights_cascades_are_cast_in_one_stage(fresh, monkeypatch):
         assert len(jit) == 1 and jit[0]["size"] == 32 * 32
         assert all(_equal(_arrays(g), _arrays(w)) for g, w in zip(got, want))
     assert len(fresh._stages) == 1 and next(iter(fresh._stages.values())).frozen.n_recordings == 1
+
+
+@pytest.mark.parametrize("name, variants", [("vtsm", [{"t_max": 32, "grid": 4}, {"t_max": 16, "grid": 2}]),
+                                             ("fvsm", [{"t_max": 64}, {"t_max": 32}])])
+def test_replayed_tiles_of_a_virtual_map_have_the_traced_bits(fresh, monkeypatch, name, variants):
+    """A virtual map's tiles (cast inside the technique at every render) replay their wavefront:
+    visibility, the tile each point read and the hit count equal the traced render's, for two
+    tile plans (other tile counts and texels) rendered in turn on one frame."""
+    from shadowlab.render.frame import make_frame
+    from shadowlab.scene import load
+    from shadowlab.techniques import base
+    frame = make_frame(load("street", resolution=(48, 27)), u_strata=1)
+    t = base.get(name)
+    light = frame.lights[0].name
+
+    def result(params):
+        r = t.render(frame, t.resolve(params))
+        return ([np.asarray(r.visibility[light].numpy()), np.asarray(r.aovs[f"{light}.tile"])],
+                r.stats["lights"][light]["hit_texels"])
+
+    want = [_traced(monkeypatch, lambda: result(p)) for p in variants]
+    assert not _equal(want[0][0], want[1][0])
+    for _ in range(3):                  # traced, recorded, replayed
+        for p, w in zip(variants, want):
+            got = result(p)
+            assert _equal(got[0], w[0]) and got[1] == w[1], p
+    stages = {k: s for k, s in fresh._stages.items() if k[0] == "tiles"}
+    assert len(stages) >= 2 and all(s.frozen.n_recordings == 1 for s in stages.values()) and not fresh._failed

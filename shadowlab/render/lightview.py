@@ -73,7 +73,7 @@ from ..errors import InputError
 from ..scene import lights as lights_mod
 from ..scene.build import surface_tau, transparent
 from .camera import Camera
-from .replay import replayed
+from .replay import replayed, uploaded
 
 MAX_HALF_FOV = math.radians(80.0)
 
@@ -521,7 +521,7 @@ class FaceConstants:
         if any(f.ortho != self.ortho for f in proj.faces):
             raise ValueError("a light view mixes orthographic and perspective faces")
         self._one = [dr.opaque(mi.Float64, v) for v in rows[0]] if len(rows) == 1 else None
-        self._table = None if self._one else mi.Float64(np.asarray(rows, np.float64).ravel())
+        self._table = None if self._one else uploaded(mi.Float64, rows)
         self._cache = {}
 
     @property

@@ -32,6 +32,7 @@ import numpy as np
 
 from ..errors import InputError
 from .lightview import Projection, cast_first_hit
+from .replay import replayed, uploaded
 
 #: texels per wavefront of :func:`render_tiles` on the CPU (Mitsuba's intersection record is ~100 B a
 #: ray) and on a GPU (:func:`chunk_texels`)
@@ -354,15 +355,14 @@ def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backfa
     if T == 0:
         return TiledView(light, base, int(bits), bool(backface), tiles, mi.Float(), mi.Float(), 0, warp=warp)
     off = tiles.offsets
-    off_dr = mi.UInt32(np.asarray(off, np.uint32))
-    tab = lambda a: mi.Float(np.asarray(a, np.float32))  # noqa: E731
-    tab64 = lambda a: mi.Float64(np.asarray(a, np.float64))  # noqa: E731
+    off_dr = uploaded(mi.UInt32, off)
+    tab = lambda a: uploaded(mi.Float, a)  # noqa: E731
+    tab64 = lambda a: uploaded(mi.Float64, a)  # noqa: E731
     X0, Y1 = tab64(tiles.x0), tab64(tiles.y1)
     DX, DY = tab64((tiles.x1 - tiles.x0) / tiles.nx), tab64((tiles.y1 - tiles.y0) / tiles.ny)
-    NX = mi.UInt32(np.asarray(tiles.nx, np.uint32))
+    NX = uploaded(mi.UInt32, tiles.nx)
     TX, TY = tab((tiles.x1 - tiles.x0) / tiles.nx * f0.scale), tab((tiles.y1 - tiles.y0) / tiles.ny * f0.scale)
-    R = [mi.Vector3f(*f0.R[r]) for r in range(3)]
-    scene = scene.casters  # the tiles hold what casts shadows (``casts_shadows``)
+    owner, scene = scene, scene.casters  # the tiles hold what casts shadows (``casts_shadows``)
     own = scene.light_shapes.get(light.name)
     shapes = scene.mi_scene.shapes_dr()
     own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
@@ -374,69 +374,89 @@ def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backfa
     org64 = _opaque(*f0.origin, kind=mi.Float64)
     scale64, shx, shy = _opaque(f0.scale, *f0.shift, kind=mi.Float64)
     start = _opaque(min(0.0, f0.near) if f0.ortho else 1e-5 * scene.radius, kind=mi.Float64)[0]
-    depth, slope, hits = [], [], 0
+    tables = (off_dr, X0, Y1, DX, DY, NX, TX, TY)
+    camera = (n_, f_, ortho_d, persp_d, org64, scale64, shx, shy, start)
+    depth, slope, hits = [], [], []
     step = chunk_texels()
     for k0 in range(0, total, step):
-        k = dr.arange(mi.UInt32, min(total, k0 + step) - k0) + dr.opaque(mi.UInt32, k0)
-        t = dr.binary_search(0, T - 1, lambda i: dr.gather(mi.UInt32, off_dr, i + 1) <= k)
-        j = k - dr.gather(mi.UInt32, off_dr, t)
-        nx = dr.maximum(dr.gather(mi.UInt32, NX, t), 1)   # the LLVM packet's unused lanes gather 0: no x/0 there
-        col, row = j % nx, j // nx
-        # texel centres and ray origins in double precision, rounded once: the same world texel gets the
-        # same float32 ray wherever the (snapped) light camera sits, so a still texel grid casts the same rays
-        F = mi.Float64
-        xb = dr.gather(F, X0, t) + (F(col) + 0.5) * dr.gather(F, DX, t)
-        yb = dr.gather(F, Y1, t) - (F(row) + 0.5) * dr.gather(F, DY, t)
-        tx, ty = dr.gather(mi.Float, TX, t), dr.gather(mi.Float, TY, t)
-        jac = None
-        if warp is not None:
-            Xc, Yc = xb, yb
-            xb, yb = warp.invert(Xc, Yc)
-            jac = [mi.Float(j) for j in warp.jacobian(Xc, Yc)]
-        xb, yb = xb + shx, yb + shy
-        xs, ys = xb * scale64, yb * scale64
-        Rr = f0.R
-        if f0.ortho:
-            d = R[2]
-            org = mi.Point3f(*[mi.Float(org64[c] + Rr[0][c] * xs + Rr[1][c] * ys + Rr[2][c] * start) for c in range(3)])
-        else:
-            dd = [Rr[0][c] * xs + Rr[1][c] * ys + Rr[2][c] for c in range(3)]
-            inv = dr.rsqrt(dd[0] * dd[0] + dd[1] * dd[1] + dd[2] * dd[2])
-            d = mi.Vector3f(*[mi.Float(a * inv) for a in dd])
-            org = mi.Point3f(*[mi.Float(org64[c] + dd[c] * inv * start) for c in range(3)])
-        ray = mi.Ray3f(mi.Point3f(org), mi.Vector3f(d))
-        si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha)
-        hit = si.is_valid()
-        rel = [mi.Float64(si.p[c]) - org64[c] for c in range(3)]          # light space in double, as light_view
-        q = [mi.Float(rel[0] * Rr[r][0] + rel[1] * Rr[r][1] + rel[2] * Rr[r][2]) for r in range(3)]
-        nl = [dr.dot(mi.Vector3f(si.n), R[r]) for r in range(3)]
-        if jac is None:
-            m = dr.maximum(dr.abs(nl[0]) * tx, dr.abs(nl[1]) * ty)
-        else:   # the caster plane's depth slope per warped texel: ∇d along the warp's columns
-            xX, yX, xY, yY = jac
-            m = dr.maximum(dr.abs(nl[0] * xX + nl[1] * yX) * tx, dr.abs(nl[0] * xY + nl[1] * yY) * ty)
-        if f0.ortho:
-            s = m / (dr.abs(nl[2]) * (f_ - n_))
-        else:
-            s = (f_ * n_ / (f_ - n_)) * m / dr.abs(nl[0] * q[0] + nl[1] * q[1] + nl[2] * q[2])
-        s = dr.select(hit & dr.isfinite(s), dr.minimum(s, 1.0), 0.0)
-        z = dr.clip(dr.select(hit, q[2], f_), n_, f_)
-        if f0.ortho:
-            dn = (z - ortho_d[0]) / ortho_d[1]
-        else:
-            dn = persp_d[0] * (1.0 - persp_d[1] / z)
-        dn = dr.select(hit, dn, 1.0)
-        dn = dr.clip(dn, 0.0, 1.0)
-        if int(bits) != 32:
-            mq = float(2 ** int(bits) - 1)
-            dn = dr.round(dn * mq) / mq
-        dr.eval(dn, s)
-        hits += int(dr.count(hit)[0])
+        n, k0_dr = min(total, k0 + step) - k0, dr.opaque(mi.UInt32, k0)
+
+        def stage(*_inputs, n=n, k0_dr=k0_dr):  # the arrays it reads are the inputs; the rest is the key's
+            return _cast_tiles(scene, f0, T, n, k0_dr, tables, camera, own_ptr, alpha, backface, warp, bits)
+
+        # the light's axes and the warp are literals of the kernel: part of the key with the sizes
+        key = (T, n, int(bits), bool(backface), own is not None, alpha, f0.ortho, tuple(map(tuple, f0.R)), warp)
+        dn, s, hit = replayed("tiles", key, stage, owner, scene.mi_scene, tables, camera, k0_dr, own_ptr)
         depth.append(dn)
         slope.append(s)
+        hits.append(dr.count(hit))        # a reduction, outside the stage: a recording cannot dry-run one
+    hits = sum(int(h[0]) for h in hits)   # read once, after every wavefront
     if len(depth) > 1:  # several wavefronts: one array again
         depth, slope = (
             [mi.Float(np.concatenate([a.numpy() for a in depth]))],
             [mi.Float(np.concatenate([a.numpy() for a in slope]))],
         )
     return TiledView(light, base, int(bits), bool(backface), tiles, depth[0], slope[0], hits, warp=warp)
+
+
+def _cast_tiles(scene, f0, T, n, k0, tables, camera, own_ptr, alpha, backface, warp, bits):
+    """One wavefront of :func:`render_tiles`: texels k0 .. k0 + n − 1 of the tiles, cast; returns the
+    quantised depth, the slope and whether each texel hit, evaluated."""
+    off_dr, X0, Y1, DX, DY, NX, TX, TY = tables
+    n_, f_, ortho_d, persp_d, org64, scale64, shx, shy, start = camera
+    R = [mi.Vector3f(*f0.R[r]) for r in range(3)]
+    k = dr.arange(mi.UInt32, n) + k0
+    t = dr.binary_search(0, T - 1, lambda i: dr.gather(mi.UInt32, off_dr, i + 1) <= k)
+    j = k - dr.gather(mi.UInt32, off_dr, t)
+    nx = dr.maximum(dr.gather(mi.UInt32, NX, t), 1)   # the LLVM packet's unused lanes gather 0: no x/0 there
+    col, row = j % nx, j // nx
+    # texel centres and ray origins in double precision, rounded once: the same world texel gets the
+    # same float32 ray wherever the (snapped) light camera sits, so a still texel grid casts the same rays
+    F = mi.Float64
+    xb = dr.gather(F, X0, t) + (F(col) + 0.5) * dr.gather(F, DX, t)
+    yb = dr.gather(F, Y1, t) - (F(row) + 0.5) * dr.gather(F, DY, t)
+    tx, ty = dr.gather(mi.Float, TX, t), dr.gather(mi.Float, TY, t)
+    jac = None
+    if warp is not None:
+        Xc, Yc = xb, yb
+        xb, yb = warp.invert(Xc, Yc)
+        jac = [mi.Float(j) for j in warp.jacobian(Xc, Yc)]
+    xb, yb = xb + shx, yb + shy
+    xs, ys = xb * scale64, yb * scale64
+    Rr = f0.R
+    if f0.ortho:
+        d = R[2]
+        org = mi.Point3f(*[mi.Float(org64[c] + Rr[0][c] * xs + Rr[1][c] * ys + Rr[2][c] * start) for c in range(3)])
+    else:
+        dd = [Rr[0][c] * xs + Rr[1][c] * ys + Rr[2][c] for c in range(3)]
+        inv = dr.rsqrt(dd[0] * dd[0] + dd[1] * dd[1] + dd[2] * dd[2])
+        d = mi.Vector3f(*[mi.Float(a * inv) for a in dd])
+        org = mi.Point3f(*[mi.Float(org64[c] + dd[c] * inv * start) for c in range(3)])
+    ray = mi.Ray3f(mi.Point3f(org), mi.Vector3f(d))
+    si = cast_first_hit(scene.mi_scene, ray, backface, own_ptr, alpha)
+    hit = si.is_valid()
+    rel = [mi.Float64(si.p[c]) - org64[c] for c in range(3)]          # light space in double, as light_view
+    q = [mi.Float(rel[0] * Rr[r][0] + rel[1] * Rr[r][1] + rel[2] * Rr[r][2]) for r in range(3)]
+    nl = [dr.dot(mi.Vector3f(si.n), R[r]) for r in range(3)]
+    if jac is None:
+        m = dr.maximum(dr.abs(nl[0]) * tx, dr.abs(nl[1]) * ty)
+    else:   # the caster plane's depth slope per warped texel: ∇d along the warp's columns
+        xX, yX, xY, yY = jac
+        m = dr.maximum(dr.abs(nl[0] * xX + nl[1] * yX) * tx, dr.abs(nl[0] * xY + nl[1] * yY) * ty)
+    if f0.ortho:
+        s = m / (dr.abs(nl[2]) * (f_ - n_))
+    else:
+        s = (f_ * n_ / (f_ - n_)) * m / dr.abs(nl[0] * q[0] + nl[1] * q[1] + nl[2] * q[2])
+    s = dr.select(hit & dr.isfinite(s), dr.minimum(s, 1.0), 0.0)
+    z = dr.clip(dr.select(hit, q[2], f_), n_, f_)
+    if f0.ortho:
+        dn = (z - ortho_d[0]) / ortho_d[1]
+    else:
+        dn = persp_d[0] * (1.0 - persp_d[1] / z)
+    dn = dr.select(hit, dn, 1.0)
+    dn = dr.clip(dn, 0.0, 1.0)
+    if int(bits) != 32:
+        mq = float(2 ** int(bits) - 1)
+        dn = dr.round(dn * mq) / mq
+    dr.eval(dn, s, hit)
+    return dn, s, hit
