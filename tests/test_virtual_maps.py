@@ -520,3 +520,24 @@ def test_discarding_extreme_demands_never_raises_a_cell_demand_or_adds_tiles(out
     values = t.resolve({**SMALL, "discard": 0.5, "smtmm_scale": 1})
     d = t.demand(outdoor, t.base(outdoor, outdoor.lights[0], values), values)
     assert d["dropped"].sum() == 0 and d["smtmm"].lx[d["smtmm"].ok].max() < 17
+
+
+@pytest.mark.parametrize("name, frame", [("street", None), ("boulevard", 0), ("boulevard", 11)])
+def test_the_focus_bounds_read_from_the_device_are_numpys(mitsuba_backend, name, frame):
+    """visible_square's light-space bounds, reduced on the device and settled by numpy on the few
+    points near the extremes, are bit for bit numpy's over every point (and ±inf over none)."""
+    import mitsuba as mi
+
+    from shadowlab.render.frame import make_frame
+    from shadowlab.render.gbuffer import vec_numpy
+    from shadowlab.render.lightview import light_frame
+    from shadowlab.scene import load
+    from shadowlab.techniques.virtual_maps import light_bounds
+    sc = load(name, resolution=(97, 61))
+    f = make_frame(sc if frame is None else sc.at_frame(frame), u_strata=1)
+    gb, R = f.gbuffer, light_frame(f.lights[0])
+    q = vec_numpy(gb.p)[np.asarray(gb.valid.numpy(), bool)] @ R.T
+    lo, hi = light_bounds(gb.p, gb.valid, R)
+    assert np.array_equal(lo, q.min(axis=0)) and np.array_equal(hi, q.max(axis=0))
+    lo, hi = light_bounds(gb.p, mi.Bool(np.zeros(len(q) * 0 + gb.size, bool)), R)
+    assert np.all(lo == np.inf) and np.all(hi == -np.inf)
