@@ -479,16 +479,18 @@ class CSM(Technique):
         return LightResult(vis, aovs, stats=map_stats(views[0]), maps=maps)
 
     def light_stats(self, frame, light, values, ctx, result):
-        sel = result.aovs["cascade"].numpy().astype(np.int64)
-        w = result.aovs["blend_weight"].numpy()
-        valid = frame.gbuffer.valid.numpy()
-        n = max(int(valid.sum()), 1)
+        # counted on the device and read back once (the AOVs themselves stay there)
+        sel, valid = result.aovs["cascade"], frame.gbuffer.valid
         N = int(values["cascades"])
-        frac = [float(((sel == i) & valid).sum()) / n for i in range(N)]
+        counts = [dr.count(valid & (sel == float(i))) for i in range(N)]
+        counts += [dr.count(valid & (result.aovs["blend_weight"] > 0.0)), dr.count(valid & (sel < 0.0)), dr.count(valid)]
+        dr.eval(counts)
+        c = [int(x[0]) for x in counts]
+        n = max(c[-1], 1)
+        frac = [float(k) / n for k in c[:N]]
         for m, f in zip(result.maps, frac):
             m["fraction"] = f
-        return {"cascade_fraction": frac, "blended_fraction": float(((w > 0) & valid).sum()) / n,
-                "unshadowed_fraction": float(((sel < 0) & valid).sum()) / n}
+        return {"cascade_fraction": frac, "blended_fraction": float(c[N]) / n, "unshadowed_fraction": float(c[N + 1]) / n}
 
     def summarise(self, frame, values, ctx, lights):
         return {"shadow_map_texels": sum(m["texels"] for st in lights.values() for m in st.get("maps", ())),
