@@ -185,9 +185,10 @@ def markdown(res: dict) -> str:
         f"Base: {c['base']['resolution']}² per cascade, PCF kernel 1, interval selection, no blending. "
         "Speed = base time / time, of the whole frame (shadow pass + lookup) and of the lookup alone; the "
         "source's = FPS / base FPS ([Buljan 2020, §4.5], 1920×1080, 1024², a GPU that rasterises its maps). "
-        "Here the shadow pass casts one Mitsuba ray per texel (each map one Dr.Jit kernel, with the kernel's "
-        "tracing in Python before it), so it dominates the frame; the lookup is the per-pixel work the kernel, "
-        "blending and selection rows vary.",
+        "Here the shadow pass casts one Mitsuba ray per texel, a light's cascades in one replayed Dr.Jit stage "
+        "(render/replay.py); what it costs beyond its kernel is host time (the replay walks the scene's arrays, "
+        "the cascades' fits are computed), so it still dominates the frame; the lookup is the per-pixel work the "
+        "kernel, blending and selection rows vary.",
         "",
         "| configuration | shadow pass (ms) | lookup (ms) | frame (ms) | frame speed | lookup speed | source FPS | "
         "source speed |",
