@@ -99,8 +99,9 @@ def test_a_moved_light_camera_replays_the_recording(fresh, monkeypatch):
     kind) are inputs of one recording: each view equals the view traced afresh for its camera."""
     from shadowlab.render.lightview import FrustumSlice, TileRect, light_view
     sc = build_scene(SCENE, "lightview.toml")
-    for light, fits in (("sun", [FrustumSlice(0.5, 2.0, near_plane="light"), FrustumSlice(2.0, 6.0, 0.5, near_plane="light"),
-                                 FrustumSlice(1.0, 3.0, 1.0, near_plane="light"), FrustumSlice(0.2, 1.0, near_plane="light")]),
+    slices = [FrustumSlice(0.5, 2.0, near_plane="light"), FrustumSlice(2.0, 6.0, 0.5, near_plane="light"),
+              FrustumSlice(1.0, 3.0, 1.0, near_plane="light"), FrustumSlice(0.2, 1.0, near_plane="light")]
+    for light, fits in (("sun", slices),
                         ("spot", [TileRect(-1.0, -1.0, 0.0, 0.0), TileRect(0.0, 0.0, 0.5, 0.5), None,
                                   TileRect(-0.5, 0.0, 0.0, 0.5)])):
         fresh.clear()

@@ -92,8 +92,8 @@ class GBuffer:
         """The G-buffer of ``scene``'s camera with the Dr.Jit fields ``arrays`` (:meth:`arrays`) and
         the camera rays ``rays`` (None: :func:`camera_rays`, traced anew and left lazy)."""
         W, H = scene.resolution
-        return cls(width=W, height=H, ss=ss, view=scene.spec.camera, rays=camera_rays(scene, ss) if rays is None else rays,
-                   **arrays)
+        rays = camera_rays(scene, ss) if rays is None else rays
+        return cls(width=W, height=H, ss=ss, view=scene.spec.camera, rays=rays, **arrays)
 
     @property
     def size(self) -> int:
@@ -149,8 +149,9 @@ def gbuffer(scene, ss: int = 1, *, evaluated: bool = True) -> GBuffer:
     alb = bsdf.eval_diffuse_reflectance(si, valid) if hasattr(bsdf, "eval_diffuse_reflectance") else mi.Color3f(0.5)
     alb = dr.select(valid, alb, 0.0)
     sid = dr.select(hit, dr.gather(mi.Int32, scene.shape_index, dr.reinterpret_array(mi.UInt32, si.shape), hit), -1)
-    gb = GBuffer.of(scene, ss, rays=ray, arrays={"si": si, "p": si.p, "n": n, "ng": ng, "valid": valid, "distance": dist,
-                                "forward_depth": zd, "reflectance": alb, "shape": sid})
+    arrays = {"si": si, "p": si.p, "n": n, "ng": ng, "valid": valid, "distance": dist, "forward_depth": zd,
+              "reflectance": alb, "shape": sid}
+    gb = GBuffer.of(scene, ss, rays=ray, arrays=arrays)
     if evaluated:
         evaluate(gb)
     return gb

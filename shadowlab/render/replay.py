@@ -1,10 +1,11 @@
 """Frame stages traced once per configuration and replayed: Dr.Jit's frozen functions (``dr.freeze``).
 
-A frame stage (the G-buffer with the unshadowed light, a light view) is one Dr.Jit kernel, but
-tracing it in Python and generating its code costs more host time than the kernel runs on a GPU
-(one H200 at 1920×1080: a light view's kernel 0.3 ms, its tracing about 3 ms). :func:`replayed`
-records a stage's kernels the first time a configuration is seen and afterwards launches the
-recorded kernels with the new inputs, skipping the tracing.
+A frame stage (the G-buffer with the unshadowed light, a light's views, a wavefront of a virtual
+map's tiles) is one Dr.Jit kernel, but tracing it in Python and generating its code can cost more
+host time than the kernel runs on a GPU (``shadowlab bench --only frames`` splits a frame into
+its kernels and host time). :func:`replayed` traces a stage as usual the first time a
+configuration is met, records its kernels the second time and afterwards launches the recorded
+kernels with the new inputs, skipping the tracing.
 
 The contract of a stage ``fn(*inputs)`` called through :func:`replayed`:
 
@@ -21,8 +22,8 @@ The contract of a stage ``fn(*inputs)`` called through :func:`replayed`:
   recording keep its scene alive: every Mitsuba object alive is traced into each call through
   a pointer (a BSDF's ``eval``), so scenes kept for their recordings slowed every later kernel.
 
-Replays give the bits of a fresh trace (the same kernels on the same data; the tests check it
-against the unrecorded stage, a moved light and a second scene included). A stage whose inputs
+Replays give the bits of a fresh trace (the same kernels on the same data; tests/test_replay.py
+checks it against the unrecorded stage, for moved light cameras and another scene object too). A stage whose inputs
 carry gradients, or called while a frozen function is being recorded, runs unrecorded.
 ``SHADOWLAB_REPLAY=0`` turns recording off for the process (every stage traced each time, as
 before).
@@ -128,9 +129,9 @@ def _forget(owner_id: int) -> None:
 
 def uploaded(kind, values):
     """``values`` (numpy or a sequence) as an evaluated Dr.Jit array of ``kind``, made from a Python
-    list: a stage whose inputs were made from numpy arrays was recorded again on some calls and not
-    on others (measured with drjit 1.5.0 on the LLVM backend: 6 recordings in 12 calls, a copy or a
-    gather of the array did not help), one whose inputs came from lists once.
+    list: with drjit 1.5.0 a stage whose inputs were made from numpy arrays was recorded again on
+    some calls and not on others (a copy or a gather of the array did not help), one whose inputs
+    came from lists was recorded once.
 
     >>> from drjit.llvm import Float
     >>> uploaded(Float, [1.0, 2.0]).numpy().tolist()

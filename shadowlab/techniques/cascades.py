@@ -483,14 +483,16 @@ class CSM(Technique):
         sel, valid = result.aovs["cascade"], frame.gbuffer.valid
         N = int(values["cascades"])
         counts = [dr.count(valid & (sel == float(i))) for i in range(N)]
-        counts += [dr.count(valid & (result.aovs["blend_weight"] > 0.0)), dr.count(valid & (sel < 0.0)), dr.count(valid)]
+        counts += [dr.count(valid & (result.aovs["blend_weight"] > 0.0)), dr.count(valid & (sel < 0.0)),
+                   dr.count(valid)]
         dr.eval(counts)
         c = [int(x[0]) for x in counts]
         n = max(c[-1], 1)
         frac = [float(k) / n for k in c[:N]]
         for m, f in zip(result.maps, frac):
             m["fraction"] = f
-        return {"cascade_fraction": frac, "blended_fraction": float(c[N]) / n, "unshadowed_fraction": float(c[N + 1]) / n}
+        return {"cascade_fraction": frac, "blended_fraction": float(c[N]) / n,
+                "unshadowed_fraction": float(c[N + 1]) / n}
 
     def summarise(self, frame, values, ctx, lights):
         return {"shadow_map_texels": sum(m["texels"] for st in lights.values() for m in st.get("maps", ())),
