@@ -209,3 +209,47 @@ def test_replayed_tiles_of_a_virtual_map_have_the_traced_bits(fresh, monkeypatch
             assert _equal(got[0], w[0]) and got[1] == w[1], p
     stages = {k: s for k, s in fresh._stages.items() if k[0] == "tiles"}
     assert len(stages) >= 2 and all(s.frozen.n_recordings == 1 for s in stages.values()) and not fresh._failed
+
+
+def test_a_scenes_lights_are_cast_in_one_stage(fresh, monkeypatch):
+    """A shadow-map technique's first light casts every light of the frame with the same map settings
+    in one stage: each view equals the one light_view traces for its light alone, the lights' own
+    panels skipped in their own maps only."""
+    import drjit as dr
+
+    from shadowlab.render.frame import make_frame
+    from shadowlab.render.lightview import light_view
+    from shadowlab.scene import load
+    from shadowlab.techniques.shadow_map import view_for
+    sc = load("many_lights", resolution=(32, 18))
+    lights = sc.spec.lights
+    want = [_traced(monkeypatch, lambda: light_view(sc, l, res=64)) for l in lights]
+    for _ in range(3):                  # traced, recorded, replayed
+        frame = make_frame(sc, u_strata=1)
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.sync_thread()
+            dr.kernel_history()
+            got = [view_for(frame, l.name, {"resolution": 64}) for l in lights]
+            dr.sync_thread()
+            jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+        assert len(jit) < len(lights)   # one kernel per configuration, not per light
+        assert all(_equal(_arrays(g), _arrays(w)) for g, w in zip(got, want))
+    assert not fresh._failed
+
+
+def test_lights_cast_together_each_skip_their_own_panel(fresh, monkeypatch):
+    """Two panel lights whose panels cast shadows, cast in one stage: each map skips its own panel and
+    sees the other's, as the map light_view traces for that light alone."""
+    import copy
+
+    from shadowlab.render.lightview import light_view, light_views
+    d = copy.deepcopy(SCENE)
+    d["lights"].append({"name": "panel2", "kind": "rect", "position": [-1.0, 2.6, 0.8], "target": [0.0, 0.0, 0.0],
+                        "size": [0.6, 0.6], "power": 100.0, "casts_shadows": True})
+    sc = build_scene(d, "two_panels.toml")
+    lights = [sc.spec.light("panel"), sc.spec.light("panel2")]
+    want = [_traced(monkeypatch, lambda: light_view(sc, l, res=32)) for l in lights]
+    for _ in range(3):                  # traced, recorded, replayed
+        got = light_views(sc, lights, [None, None], res=32)
+        assert all(_equal(_arrays(g), _arrays(w)) for g, w in zip(got, want))
+    assert len(fresh._stages) == 1 and not fresh._failed

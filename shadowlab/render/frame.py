@@ -141,22 +141,27 @@ class FrameContext:
         return self.light_views_of(light_name, [fit], res=res, bits=bits, backface=backface, layers=layers,
                                 translucent=translucent)[0]
 
-    def light_views_of(self, light_name: str, fits, res: int | None = None, bits: int | None = None,
-                    backface: bool = False, layers: int = 1, translucent: bool = False) -> list:
-        """:meth:`light_view` for each fit of ``fits``; those not cast yet are cast together
-        (:func:`~shadowlab.render.lightview.light_views`: a light's cascades in one stage)."""
-        spec = self.scene.spec.light(light_name)
+    def light_views_of(self, light_name, fits, res: int | None = None, bits: int | None = None,
+                       backface: bool = False, layers: int = 1, translucent: bool = False) -> list:
+        """:meth:`light_view` for each fit of ``fits`` of the light ``light_name`` (or of each light
+        of a list of names, one per fit); those not cast yet are cast together
+        (:func:`~shadowlab.render.lightview.light_views`: a light's cascades, or lights that share a
+        map size, in one stage)."""
+        names = list(light_name) if isinstance(light_name, (list, tuple)) else [light_name] * len(fits)
+        specs = [self.scene.spec.light(n) for n in names]
         self.require_mitsuba_geometry()
         translucent = bool(translucent and self.scene.has_translucent)
-        base = (light_name, int(res or spec.shadow_map), int(bits or spec.depth_bits), bool(backface))
         tail = ((int(layers),) if layers > 1 else ()) + (("translucent",) if translucent else ())
         fits = [SceneSphere() if f is None else f for f in fits]
-        keys = [base + (f,) + tail for f in fits]
-        missing = {k: f for k, f in zip(keys, fits) if k not in self._views}
-        if missing:
-            views = light_views(self.scene, spec, list(missing.values()), res=base[1], bits=base[2],
-                                backface=base[3], layers=int(layers), translucent=translucent)
-            self._views.update(zip(missing, views))
+        keys = [(n, int(res or sp.shadow_map), int(bits or sp.depth_bits), bool(backface), f) + tail
+                for n, sp, f in zip(names, specs, fits)]
+        missing = {k: (sp, f) for k, sp, f in zip(keys, specs, fits) if k not in self._views}
+        for size in dict.fromkeys(k[1] for k in missing):     # one stage per map size
+            group = {k: v for k, v in missing.items() if k[1] == size}
+            views = light_views(self.scene, [sp for sp, _ in group.values()], [f for _, f in group.values()],
+                                res=size, bits=bits, backface=bool(backface), layers=int(layers),
+                                translucent=translucent)
+            self._views.update(zip(group, views))
         return [self._views[k] for k in keys]
 
     def triangles(self, segments: int = 64) -> np.ndarray:

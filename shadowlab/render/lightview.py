@@ -767,46 +767,50 @@ class _Cast:
     consts: FaceConstants
     t0: object
     clip_plane: object
+    own_ptr: object
+    bits: int
     key: tuple
 
 
 def light_views(scene, light, fits, res: int | None = None, bits: int | None = None, backface: bool = False,
                 layers: int = 1, translucent: bool = False) -> list:
-    """:func:`light_view` of ``light`` for each fit of ``fits`` (None: :class:`SceneSphere`), the
-    views of one configuration (faces, projection kind, clipping) cast in one stage (one kernel,
-    and one replay: the scene's arrays are walked once for all of a light's cascades)."""
+    """:func:`light_view` for each fit of ``fits`` (None: :class:`SceneSphere`) of ``light`` (a
+    LightSpec, or a list of them, one per fit): the views of one configuration (faces, projection
+    kind, clipping, depth format, the light's own panel or none) are cast in one stage (one kernel,
+    and one replay: the scene's arrays are walked once for all of a light's cascades, or for all
+    the lights of a scene that share a map size)."""
     owner, scene = scene, scene.casters  # the map holds what casts shadows (``casts_shadows``)
-    bits = int(bits or light.depth_bits)
-    own = scene.light_shapes.get(light.name)
+    lights = list(light) if isinstance(light, (list, tuple)) else [light] * len(fits)
     shapes = scene.mi_scene.shapes_dr()
-    own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
     alpha = bool(getattr(scene, "has_alpha", False))
     table = scene.translucency() if translucent and getattr(scene, "has_translucent", False) else None
-    casts = [_prepare(scene, light, projection(light, scene, res, fit)) for fit in fits]
+    casts = [_prepare(scene, l, projection(l, scene, res, fit), int(bits or l.depth_bits), shapes)
+             for l, fit in zip(lights, fits)]
     out = [None] * len(casts)
     for key in dict.fromkeys(c.key for c in casts):
         which = [i for i, c in enumerate(casts) if c.key == key]
         group = [casts[i] for i in which]
 
         def stage(*_inputs, group=group):  # the arrays it reads are the inputs; the rest is the key's
-            views = [_cast_view(scene, c.proj, c.consts, bits, c.t0, backface, own_ptr, alpha, table, c.clip_plane,
-                                layers) for c in group]
+            views = [_cast_view(scene, c.proj, c.consts, c.bits, c.t0, backface, c.own_ptr, alpha, table,
+                                c.clip_plane, layers) for c in group]
             dr.eval(views)  # the light views are a stage boundary: one evaluation of every map
             return views
 
-        # the light and its cameras are inputs (t0, consts, clip_plane): a moved light replays the recording
-        full = key + (bits, bool(backface), own is not None, alpha, table is not None, int(layers), len(group))
+        # the lights and their cameras are inputs (t0, consts, clip_plane, own panel): moved lights replay
+        full = key + (bool(backface), alpha, table is not None, int(layers), len(group))
         views = replayed("light_view", full, stage, owner, scene.mi_scene, [c.consts.data for c in group],
-                         [c.t0 for c in group], own_ptr, table, [c.clip_plane for c in group])
+                         [c.t0 for c in group], [c.own_ptr for c in group], table, [c.clip_plane for c in group])
         for i, c, (maps, near) in zip(which, group, views):
-            near = None if near is None else LightView(light=light, proj=c.proj, bits=bits, backface=backface,
-                                                       maps=near)
-            out[i] = LightView(light=light, proj=c.proj, bits=bits, backface=backface, maps=maps, translucent=near)
+            l = lights[i]
+            near = None if near is None else LightView(light=l, proj=c.proj, bits=c.bits, backface=backface, maps=near)
+            out[i] = LightView(light=l, proj=c.proj, bits=c.bits, backface=backface, maps=maps, translucent=near)
     return out
 
 
-def _prepare(scene, light, proj) -> _Cast:
-    """The inputs of ``proj``'s cast: its camera values, where its rays start, its clipping plane."""
+def _prepare(scene, light, proj, bits: int, shapes) -> _Cast:
+    """The inputs of ``light``'s cast through ``proj``: its camera values, where its rays start, its
+    clipping plane, its own panel among ``shapes`` (the scene's shape pointers; None without one)."""
     f0 = proj.faces[0]
     # start past the light's own surface: spheres at their radius, planar lights just in front
     start = light.radius * 1.001 if light.kind in ("sphere", "point") else 1e-5 * scene.radius
@@ -821,8 +825,10 @@ def _prepare(scene, light, proj) -> _Cast:
         if isinstance(proj.fit, FrustumSlice) and proj.fit.near_plane != "caster":
             start = min(start, float(np.min((_corners(scene) - np.array(f0.origin)) @ np.array(f0.R[2])))
                         - 1e-3 * scene.radius)
+    own = scene.light_shapes.get(light.name)
+    own_ptr = dr.gather(type(shapes), shapes, own) if own is not None else None
     return _Cast(proj, FaceConstants(proj), dr.opaque(mi.Float64, start), _clip_plane(f0) if clip else None,
-                 (proj.res, len(proj.faces), f0.ortho, clip))
+                 own_ptr, bits, (proj.res, len(proj.faces), f0.ortho, clip, bits, own is not None))
 
 
 def _cast_view(scene, proj, consts, bits, t0, backface, own_ptr, alpha, table, clip_plane, layers):

@@ -210,8 +210,13 @@ def view_for(frame, light_name: str, values: dict, translucent: bool = False):
     the opaque casters' depth plus the translucent casters' colour and depth (in a scene with
     translucent shapes; the plain view elsewhere)."""
     res, bits = map_settings(frame, light_name, values)
-    return frame.light_view(light_name, res=res, bits=bits, backface=bool(values.get("backface", False)),
-                            layers=map_layers(values), translucent=translucent)
+    # the frame's lights with the same map settings are cast together (one stage, one replay for all):
+    # the render asks for each of them next
+    names = [l.name for l in frame.lights if map_settings(frame, l.name, values) == (res, bits)]
+    views = frame.light_views_of(names, [None] * len(names), res=res, bits=bits,
+                                 backface=bool(values.get("backface", False)), layers=map_layers(values),
+                                 translucent=translucent)
+    return views[names.index(light_name)]
 
 
 def map_layers(values: dict) -> int:
