@@ -341,6 +341,9 @@ def _local(workers: int) -> DaskExecutor:
     # worker the cluster's close had to stop mid-job, and unlinks them: after a Ctrl-C that line is only noise
     if TRACKER_NOISE not in sys.warnoptions:
         sys.warnoptions.append(TRACKER_NOISE)
+    # CRITICAL: after a Ctrl-C a worker whose scheduler closed first logs its failed heartbeat at ERROR,
+    # with a traceback, on the terminal (seen once under load); a job's own errors reach this process as
+    # the future's exception, which the command reports in one line
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                           preload=[PRELOAD], silence_logs=logging.ERROR, env=env)
+                           preload=[PRELOAD], silence_logs=logging.CRITICAL, env=env)
     return DaskExecutor(Client(cluster), cluster=cluster, threads=threads_per_worker(workers))
