@@ -312,6 +312,21 @@ def test_tiles_rendered_and_applied_a_wavefront_at_a_time_give_the_same_bits(out
     assert np.array_equal(whole.aovs["sun.tile"], parts.aovs["sun.tile"])
 
 
+def test_a_tile_larger_than_a_wavefront_is_cast_in_several_with_the_same_bits(outdoor, monkeypatch):
+    """One 128² tile cast in wavefronts of 5000 texels (joined on the device) equals it cast in one."""
+    from shadowlab.render import tiles as T
+    from shadowlab.render.lightview import FrustumSlice, projection
+    light = outdoor.lights[0]
+    proj = projection(light, outdoor.scene, 128, FrustumSlice(0.1, 60.0, 2.0, False, "sphere"))
+    tile = T.Tiles([-1], [-1], [1], [1], [128], [128])
+    whole = T.render_tiles(outdoor.scene, light, proj, tile, 24)
+    monkeypatch.setattr(T, "chunk_texels", lambda: 5000)
+    parts = T.render_tiles(outdoor.scene, light, proj, tile, 24)
+    assert whole.hit_texels == parts.hit_texels > 0
+    for a, b in ((whole.depth, parts.depth), (whole.slope, parts.slope)):
+        assert np.array_equal(a.numpy(), b.numpy())
+
+
 def test_vtsm_is_one_focused_map_of_grid_times_t_max_texels_bit_for_bit(outdoor):
     """n × n tiles of t² hold exactly the texels of one n·t map of the same light camera: VTSM
     equals csm with one cascade (the same sphere fit, snapped) and a hard filter at n·t texels."""

@@ -269,8 +269,9 @@ def _kern(k: dict) -> str:
     return f"{k['jit']} + {other}"
 
 
-#: issue 29's goals on one H200 at 1920×1080: (what, scene, measure, at most); ``measure`` names the figure
-#: taken over the scene's techniques that cast light views (the SDF techniques cast none)
+#: issue 29's goals on one H200 at 1920×1080: (what, scenes, measure, at most); ``measure`` names the figure
+#: taken over the scenes' techniques that cast shadow maps (light views, or a virtual map's tiles inside the
+#: technique; the SDF techniques cast none)
 GOALS = (
     ("a shadow-map family's new frame, light views included, one light", ("contact", "street"), "new_max_ms", 10.0),
     ("the same frame over its raw ray cost", ("contact", "street"), "over_limit_max", 5.0),

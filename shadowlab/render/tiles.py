@@ -391,12 +391,9 @@ def render_tiles(scene, light, base: Projection, tiles: Tiles, bits: int, backfa
         slope.append(s)
         hits.append(dr.count(hit))        # a reduction, outside the stage: a recording cannot dry-run one
     hits = sum(int(h[0]) for h in hits)   # read once, after every wavefront
-    if len(depth) > 1:  # several wavefronts: one array again
-        depth, slope = (
-            [mi.Float(np.concatenate([a.numpy() for a in depth]))],
-            [mi.Float(np.concatenate([a.numpy() for a in slope]))],
-        )
-    return TiledView(light, base, int(bits), bool(backface), tiles, depth[0], slope[0], hits, warp=warp)
+    # several wavefronts: one array again, on the device
+    return TiledView(light, base, int(bits), bool(backface), tiles, dr.concat(depth), dr.concat(slope), hits,
+                     warp=warp)
 
 
 def _cast_tiles(scene, f0, T, n, k0, tables, camera, own_ptr, alpha, backface, warp, bits):
