@@ -16,6 +16,7 @@ import pytest
 
 from shadowlab.errors import InputError
 from shadowlab.techniques import base
+from shadowlab.render.tiles import cells_of
 from shadowlab.techniques.virtual_maps import (GRIDS, SMTMM, bucket, cell_demand, demand_level, leaf_cells,
                                                memory_texels, pyramid, tile_grid, traverse)
 
@@ -189,6 +190,35 @@ def test_histogram_buckets_and_the_discard_rule_on_a_synthetic_demand():
     assert demand(0.5)[0][0][0] == 10
     # the rule counts pixels, not levels: 3 % leaves the 18s (4 pixels > 3)
     assert demand(0.03)[0][0][0] == 18
+
+
+def test_tile_grid_matches_scattered_per_pixel_updates_on_random_pixels():
+    rng = np.random.default_rng(5)
+    h, w, n, eta0, eta1 = 13, 17, 4, 17, 22
+    k = h * w
+    sm = SMTMM((h, w), 1, rng.uniform(-1, 1, k), rng.uniform(-1, 1, k), rng.integers(-3, 30, k),
+               rng.integers(-3, 30, k), rng.random(k) > 0.25)
+    sm.ok &= ~((sm.x < -0.5) & (sm.y > 0.5))                       # the top-left cell stays empty
+    corner = (sm.x > 0.5) & (sm.y < -0.5)                            # the bottom-right one's levels are all
+    sm.lx[corner], sm.ly[corner] = -3, -2                            # below the empty mark −1
+    g = tile_grid(sm, n, eta0, eta1)
+    ok = sm.ok
+    cx, cy = cells_of(sm.x[ok], sm.y[ok], n)
+    cell = cy * n + cx
+    px, py = np.nonzero(ok.reshape(h, w))[1], np.nonzero(ok.reshape(h, w))[0]
+    for a, L in (("x", sm.lx[ok]), ("y", sm.ly[ok])):
+        m, lo = np.full(n * n, -1), np.full(n * n, -1)
+        np.maximum.at(m, cell, L)
+        np.maximum.at(lo, cell[L < eta0], L[L < eta0])
+        hist = np.zeros(n * n * (eta1 - eta0 + 3), np.int64)
+        np.add.at(hist, cell * (eta1 - eta0 + 3) + bucket(L, eta0, eta1), 1)
+        assert g.max[a].ravel().tolist() == m.tolist() and g.lo_max[a].ravel().tolist() == lo.tolist()
+        assert g.hist[a].ravel().tolist() == hist.tolist()
+    rect = np.tile(np.array([np.iinfo(np.int64).max] * 2 + [-1, -1]), (n * n, 1))
+    for j, (f, v) in enumerate(((np.minimum, px), (np.minimum, py), (np.maximum, px), (np.maximum, py))):
+        f.at(rect[:, j], cell, v)
+    assert g.rect.reshape(-1, 4).tolist() == rect.tolist()
+    assert g.max["x"][0, 0] == -1 and g.count[0, 0] == 0 and (g.count > 0).sum() == n * n - 1
 
 
 # ----------------------------------------------------------------------------- traversal

@@ -57,7 +57,7 @@ from ..pipeline import check_memory, load_scene
 from ..render.frame import FrameContext, make_frame
 from ..techniques import base
 from .rays import raw_ray_test
-from .timing import machine_text, render_evaluated, timed
+from .timing import history, kernel_summary, machine_text, render_evaluated, timed
 
 #: (scene, which techniques): None = every one that applies; a tuple names them
 PLAN = (("contact", None), ("two_lights", None), ("street", ("csm", "vtsm", "fvsm")),
@@ -107,21 +107,6 @@ class TimedFrame(FrameContext):
         return self._timed(lambda: super(TimedFrame, self).top_tree(*args, **kwargs), lambda: 0)
 
 
-def kernel_summary(entries: list) -> dict:
-    """Counts and times of Dr.Jit kernel-history entries: JIT kernels launched (and compiled),
-    ``Memcpy`` entries (count, bytes), other entries by type, and their execution time (ms)."""
-    jit = [k for k in entries if k.get("type") == dr.KernelType.JIT]
-    copies = [k for k in entries if k.get("type") == dr.KernelType.Memcpy]
-    other: dict = {}
-    for k in entries:
-        if k.get("type") not in (dr.KernelType.JIT, dr.KernelType.Memcpy):
-            name = str(k.get("type")).rsplit(".", 1)[-1]
-            other[name] = other.get(name, 0) + 1
-    return {"jit": len(jit), "compiled": sum(1 for k in jit if not k.get("cache_hit") and not k.get("cache_disk")),
-            "memcpy": len(copies), "memcpy_bytes": int(sum(k.get("size", 0) for k in copies)), "other": other,
-            "execution_ms": float(sum(k.get("execution_time", 0.0) for k in entries))}
-
-
 def first_sync(fn) -> str | None:
     """Where ``fn`` first waits for the device (``JitFlag.ForbidSynchronization`` raises there): the
     innermost line of shadowlab outside the bench, as ``module.py:LINE (function)`` (``<lambda>``
@@ -153,15 +138,9 @@ def _texels(stats: dict) -> int:
     return total
 
 
-def _history(on: bool) -> None:
-    dr.sync_thread()
-    dr.set_flag(dr.JitFlag.KernelHistory, on)
-    dr.kernel_history_clear()
-
-
 def new_frame(sc, technique, params) -> tuple:
     """(fresh :class:`TimedFrame`, its result, the split of one new frame) of ``technique``."""
-    _history(True)
+    history(True)
     try:
         t0 = time.perf_counter()
         frame = make_frame(sc)
@@ -175,7 +154,7 @@ def new_frame(sc, technique, params) -> tuple:
         t_render = time.perf_counter() - t1
         k_tech = tf.timing["other_kernels"] + dr.kernel_history()
     finally:
-        _history(False)
+        history(False)
     views_s = min(tf.timing["views_s"], t_render)
     k_views = tf.timing["view_kernels"]
     tf.timing["on"] = False
@@ -192,7 +171,7 @@ def new_frame(sc, technique, params) -> tuple:
 def warm_frame(frame, technique, params, repeats: int) -> dict:
     """Median warm render (light views cached) and one more render's kernels."""
     _, ts = timed(lambda: render_evaluated(technique, frame, params), repeats, warmup=1)
-    _history(True)
+    history(True)
     try:
         t0 = time.perf_counter()
         render_evaluated(technique, frame, params)
@@ -200,7 +179,7 @@ def warm_frame(frame, technique, params, repeats: int) -> dict:
         tk = time.perf_counter() - t0
         kern = kernel_summary(dr.kernel_history())
     finally:
-        _history(False)
+        history(False)
     ts = sorted(ts)
     return {"time_s": ts[len(ts) // 2], "runs_s": ts, "kernels": kern, "kernels_run_s": tk,
             "host_s": max(tk - kern["execution_ms"] / 1e3, 0.0)}

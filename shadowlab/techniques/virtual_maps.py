@@ -365,33 +365,38 @@ class Grid:
     rect: np.ndarray
 
 
+def _per_cell(ufunc, groups, values, size: int, fill: int) -> np.ndarray:
+    """``ufunc`` (np.maximum / np.minimum) of ``values`` over each cell of ``groups`` (cells' order, the
+    first entry of each run, the cells present), folded with ``fill``, which empty cells keep: what
+    ``ufunc.at`` onto a ``fill`` array gives, from one sort instead of one scattered update per pixel."""
+    order, starts, present = groups
+    out = np.full(size, fill, np.int64)
+    if len(order):
+        out[present] = ufunc(ufunc.reduceat(np.asarray(values, np.int64)[order], starts), fill)
+    return out
+
+
 def tile_grid(sm: SMTMM, n: int, eta0: int, eta1: int) -> Grid:
     """Accumulate the SMTMM pixels into the n × n SMTG (numpy, no loop over pixels)."""
     ok = sm.ok
     cx, cy = cells_of(sm.x[ok], sm.y[ok], n)
     cell = cy * n + cx
     count = np.bincount(cell, minlength=n * n).reshape(n, n)
+    order = np.argsort(cell, kind="stable")
+    sc = cell[order]
+    starts = np.flatnonzero(np.r_[True, sc[1:] != sc[:-1]]) if len(sc) else np.zeros(0, np.int64)
+    groups = (order, starts, sc[starts])
     nb = eta1 - eta0 + 3
     mx, hist, lo = {}, {}, {}
     for a, L in (("x", sm.lx[ok]), ("y", sm.ly[ok])):
-        m = np.full(n * n, -1, np.int64)
-        np.maximum.at(m, cell, L)
-        mx[a] = m.reshape(n, n)
-        h = np.zeros(n * n * nb, np.int64)
-        np.add.at(h, cell * nb + bucket(L, eta0, eta1), 1)
-        hist[a] = h.reshape(n, n, nb)
-        lm = np.full(n * n, -1, np.int64)
-        low = L < eta0
-        np.maximum.at(lm, cell[low], L[low])
-        lo[a] = lm.reshape(n, n)
-    px = (np.arange(sm.shape[0] * sm.shape[1]) % sm.shape[1])[ok]
-    py = (np.arange(sm.shape[0] * sm.shape[1]) // sm.shape[1])[ok]
-    rect = np.empty((n * n, 4), np.int64)
-    rect[:, :2], rect[:, 2:] = np.iinfo(np.int64).max, -1
-    np.minimum.at(rect[:, 0], cell, px)
-    np.minimum.at(rect[:, 1], cell, py)
-    np.maximum.at(rect[:, 2], cell, px)
-    np.maximum.at(rect[:, 3], cell, py)
+        mx[a] = _per_cell(np.maximum, groups, L, n * n, -1).reshape(n, n)
+        hist[a] = np.bincount(cell * nb + bucket(L, eta0, eta1), minlength=n * n * nb).reshape(n, n, nb)
+        lo[a] = _per_cell(np.maximum, groups, np.where(L < eta0, L, -1), n * n, -1).reshape(n, n)
+    pix = np.flatnonzero(ok)
+    px, py = pix % sm.shape[1], pix // sm.shape[1]
+    big = np.iinfo(np.int64).max
+    rect = np.stack([_per_cell(np.minimum, groups, px, n * n, big), _per_cell(np.minimum, groups, py, n * n, big),
+                     _per_cell(np.maximum, groups, px, n * n, -1), _per_cell(np.maximum, groups, py, n * n, -1)], -1)
     return Grid(n, eta0, eta1, count, mx, hist, lo, rect.reshape(n, n, 4))
 
 
