@@ -152,6 +152,8 @@ def test_fused_equals_exact_except_the_classifiers_misses(mesh_frame):
     print(f"{kind}: edge points {int(edge.sum())}, classifier misses {int(misses.sum())}, hard wrong {hard_wrong}")
     assert hard_wrong > 0 and misses.sum() <= 0.5 * hard_wrong
     assert 0 < r.stats["edge_fraction"]["L"] < 0.2
+    nv = _flat(frame, r.aovs["L.nodes_visited"])      # counted on the device: the AOVs' mean over the edge points
+    assert r.stats["nodes_per_query"]["L"] == pytest.approx(float(nv[edge].sum()) / int(edge.sum()), rel=1e-12)
 
 
 def _flat(frame, img):
@@ -181,6 +183,36 @@ def test_insertion_order_does_not_change_the_visibility(mesh_frame):
     assert len(sizes) > 1, "the orders must build different trees"
     for v in results[1:]:
         assert np.array_equal(v, results[0]), kind
+
+
+def test_the_device_build_is_the_numpy_reference_node_for_node(mesh_frame):
+    """Algorithm 1 on the device (what frames use) builds the tree the level-synchronous numpy
+    reference builds: the same links, capping flags and levels node for node, the same counts, and the
+    same visibility and nodes visited at every point. The planes' offsets d agree to float64 rounding
+    (numpy's einsum may use fused multiply-adds; the device sums x, y, z in turn)."""
+    import drjit as dr
+    from shadowlab.render.top_tree import build_top_tree, build_top_tree_numpy, offset_point, query
+    kind, frame = mesh_frame
+    ref = frame.top_tree("L")
+    light = ref.light + np.concatenate([ref.origin * ref.light[3], [0]])
+    V = frame.triangles()
+    for order in ("random", "light", "scene", np.random.default_rng(3).permutation(len(V))):
+        a = build_top_tree_numpy(V, light, order=order, origin=ref.origin)
+        b = build_top_tree(V, light, order=order, origin=ref.origin)
+        assert {**a.stats(), "build_seconds": 0} == {**b.stats(), "build_seconds": 0}, kind
+        assert a.rounds == b.rounds and a.nodes > 4 * len(V) // 2
+        for f in ("child", "cap", "level"):
+            assert np.array_equal(getattr(a, f), getattr(b, f)), (kind, f)
+        assert np.allclose(a.planes, b.planes, rtol=0, atol=1e-14 * (1 + a.extent)), kind
+        assert np.allclose(a.near, b.near, rtol=1e-12, atol=1e-12), kind
+        out = []
+        for tree in (a, b):
+            x = offset_point(tree, frame.gbuffer.p, frame.gbuffer.ng)
+            vis, visits, deepest = query(tree, x, frame.gbuffer.valid)
+            dr.eval(vis, visits, deepest)
+            out.append((vis.numpy(), visits.numpy(), deepest.numpy()))
+        for x, y in zip(*out):
+            assert np.array_equal(x, y), kind
 
 
 # ---------------------------------------------------------------------------------------------

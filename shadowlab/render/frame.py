@@ -30,7 +30,7 @@ from .lightview import LightView, SceneSphere, light_views
 from .replay import replayed
 from .screen import Screen
 from .shading import unshadowed
-from .top_tree import TopTree, build_top_tree
+from .top_tree import TopTree, build_top_tree, upload_triangles
 
 
 @dataclass
@@ -166,21 +166,23 @@ class FrameContext:
 
     def triangles(self, segments: int = 64) -> np.ndarray:
         """The scene's triangles (T×3×3, world; :func:`~shadowlab.scene.mesh.scene_triangles`), made
-        once per tessellation; InputError for a scene without any (e.g. SDF objects only)."""
-        key = ("triangles", int(segments))
-        if key not in self._cache:
+        once per scene and tessellation; InputError for a scene without any (e.g. SDF objects only)."""
+        key = ("triangles", int(segments), self.scene.spec.shapes)
+        derived = self.scene.derived
+        if key not in derived:
             self.require_mitsuba_geometry()
             V, _ = scene_triangles(self.scene.spec, segments)
             if not len(V):
                 raise InputError(f"scene {self.scene.name!r} has no triangles (no [[shapes]]): a TOP tree is built "
                                  "from the scene's triangles; add a mesh or a primitive shape")
-            self._cache[key] = V
-        return self._cache[key]
+            derived[key] = V
+        return derived[key]
 
     def top_tree(self, light_name: str, segments: int = 64, order: str = "random") -> TopTree:
         """The TOP tree of the light's centre (a point light's position, or a directional light at
         infinity) over :meth:`triangles` and the other lights' panels that cast shadows
-        (``casts_shadows``), built once per (light, tessellation, insertion order)."""
+        (``casts_shadows``), built on the device once per frame and (light, tessellation, insertion
+        order); its triangles are uploaded once per scene."""
         key = ("top_tree", light_name, int(segments), order)
         if key not in self._cache:
             spec = self.scene.spec.light(light_name)
@@ -188,10 +190,13 @@ class FrameContext:
                 light = [-x for x in light_forward(spec)] + [0.0]
             else:
                 light = list(spec.position) + [1.0]
-            V = self.triangles(segments)
-            panels = panel_triangles(self.scene.spec, segments, exclude=light_name)
-            V = np.concatenate([V, panels]) if len(panels) else V
-            self._cache[key] = build_top_tree(V, np.asarray(light, np.float64), order=order)
+            tkey = ("tree_triangles", light_name, int(segments), self.scene.spec.shapes, self.scene.spec.lights)
+            derived = self.scene.derived
+            if tkey not in derived:
+                V = self.triangles(segments)
+                panels = panel_triangles(self.scene.spec, segments, exclude=light_name)
+                derived[tkey] = upload_triangles(np.concatenate([V, panels]) if len(panels) else V)
+            self._cache[key] = build_top_tree(derived[tkey], np.asarray(light, np.float64), order=order)
         return self._cache[key]
 
     def lit_mask(self, light_name: str) -> np.ndarray:

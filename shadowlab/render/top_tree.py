@@ -20,11 +20,14 @@ side of that node's plane, until it reaches an empty link. It then hangs its sub
 A triangle that reaches a capping plane's negative side is dropped: it lies wholly in the shadow of
 that plane's triangle and adds no shadow.
 
-The build is level-synchronous: every pending triangle takes one step per round (numpy over all
-of them, no loop over triangles or nodes). Where several triangles reach the same empty link in
+The build is level-synchronous: every pending triangle takes one step per round, all of them at
+once, with no loop over triangles or nodes. Where several triangles reach the same empty link in
 the same round, the first in insertion order takes it and the others descend into its subtree in
 the next round. Every triangle that reaches a link reaches it in the round equal to the link's
-depth, so the tree is the one sequential insertion in that order builds.
+depth, so the tree is the one sequential insertion in that order builds. :func:`build_top_tree`
+runs the rounds as Dr.Jit kernels on the device (a frame's tree never passes through the host; one
+wait per round, for the count of triangles left); :func:`build_top_tree_numpy` runs them in numpy
+and is the reference the device build is tested against, node for node.
 
 Insertion order (``order``):
 
@@ -68,7 +71,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-__all__ = ["TopTree", "build_top_tree", "triangle_planes", "query", "RAY_EPSILON", "ORDERS"]
+from .replay import replayed
+
+__all__ = ["TopTree", "Triangles", "build_top_tree", "build_top_tree_numpy", "upload_triangles", "triangle_planes",
+           "query", "RAY_EPSILON", "ORDERS"]
 
 #: Mitsuba's ``math::RayEpsilon<float>`` (1500 · 2⁻²⁴): a shadow ray leaves its surface this far
 #: (times 1 + the largest coordinate) along the normal.
@@ -80,34 +86,46 @@ ORDER_SEED = 0x70B
 _LEAF = -1
 
 
-@dataclass
 class TopTree:
     """A built TOP tree. ``planes[k]`` = (n, d) of node k about ``origin`` (world = origin + x);
     ``cap[k]``: a capping plane; ``child[k]`` = (positive, intersecting, negative) node indices,
-    −1 for an empty leaf; ``level[k]``: node k's depth (the root is 1). ``depth``: most nodes on a
-    root-to-leaf path. Counts: ``triangles``
-    (inserted), ``dropped`` (wholly in another's shadow), ``degenerate`` (no area, or the light
-    in their plane: no shadow volume)."""
+    −1 for an empty leaf; ``level[k]``: node k's depth (the root is 1); ``near[k]``: a lower bound
+    of the light distance (point light) or light-space depth (directional) of every triangle in
+    node k's subtree, the "deep" part of the query [Mora 2016] (None: not built). ``depth``: most
+    nodes on a root-to-leaf path. Counts: ``triangles`` (inserted), ``dropped`` (wholly in another's
+    shadow), ``degenerate`` (no area, or the light in their plane: no shadow volume); ``extent``:
+    the largest |d| of its planes.
 
-    planes: np.ndarray
-    cap: np.ndarray
-    child: np.ndarray
-    level: np.ndarray
-    origin: np.ndarray
-    light: np.ndarray
-    depth: int
-    triangles: int
-    dropped: int
-    degenerate: int
-    rounds: int
-    seconds: float
-    #: per node: a lower bound of the light distance (point light) or light-space depth (directional)
-    #: of every triangle in its subtree, the "deep" part of the query [Mora 2016] (None: not built)
-    near: np.ndarray | None = None
+    The node arrays live where the tree was built: :func:`build_top_tree` leaves them on the device
+    (numpy copies are read back when first asked for), :func:`build_top_tree_numpy` in numpy
+    (uploaded by :meth:`arrays` when first queried)."""
 
-    @property
-    def nodes(self) -> int:
-        return len(self.planes)
+    _FIELDS = ("planes", "cap", "child", "level", "near")
+
+    def __init__(self, *, origin, light, depth: int, triangles: int, dropped: int, degenerate: int, rounds: int,
+                 seconds: float, nodes: int, extent: float, host: dict | None = None, device: dict | None = None):
+        self.origin, self.light = np.asarray(origin, np.float64), np.asarray(light, np.float64)
+        self.depth, self.triangles, self.dropped, self.degenerate = int(depth), int(triangles), int(dropped), \
+            int(degenerate)
+        self.rounds, self.seconds, self.nodes, self.extent = int(rounds), float(seconds), int(nodes), float(extent)
+        self._host, self._device, self._dr = host, device, None
+
+    def _numpy(self, name: str):
+        if self._host is None:
+            d = self._device
+            self._host = {"planes": np.stack([np.asarray(p.numpy(), np.float64) for p in d["planes"]], -1)
+                          .reshape(-1, 4),
+                          "cap": np.asarray(d["cap"].numpy(), bool).reshape(-1),
+                          "child": np.stack([np.asarray(c.numpy(), np.int32) for c in d["child"]], -1).reshape(-1, 3),
+                          "level": np.asarray(d["level"].numpy(), np.uint32).reshape(-1),
+                          "near": np.asarray(d["near"].numpy(), np.float64).reshape(-1)}
+        return self._host[name]
+
+    planes = property(lambda self: self._numpy("planes"))
+    cap = property(lambda self: self._numpy("cap"))
+    child = property(lambda self: self._numpy("child"))
+    level = property(lambda self: self._numpy("level"))
+    near = property(lambda self: self._numpy("near"))
 
     def stats(self) -> dict:
         """JSON-able size and build figures."""
@@ -115,15 +133,24 @@ class TopTree:
                 "degenerate": self.degenerate, "build_rounds": self.rounds, "build_seconds": self.seconds}
 
     def arrays(self) -> dict:
-        """The tree as Dr.Jit arrays (made once): plane components, links, the capping flag."""
-        if not hasattr(self, "_dr"):
-            pl = np.ascontiguousarray(self.planes.astype(np.float32))
-            self._dr = {"a": mi.Float(pl[:, 0]), "b": mi.Float(pl[:, 1]), "c": mi.Float(pl[:, 2]),
-                        "d": mi.Float(pl[:, 3]), "cap": mi.Bool(self.cap),
-                        "p": mi.Int32(self.child[:, 0]), "i": mi.Int32(self.child[:, 1]),
-                        "n": mi.Int32(self.child[:, 2]), "level": mi.UInt32(self.level)}
-            if self.near is not None:
-                self._dr["near"] = mi.Float(np.ascontiguousarray(self.near, np.float32))
+        """The tree as the query reads it, Dr.Jit arrays (made once): plane components (float32),
+        links, the capping flag, levels and the subtrees' nearest distances (float32)."""
+        if self._dr is None:
+            if self._device is not None:
+                d = self._device
+                pl, near = [mi.Float(p) for p in d["planes"]], d["near"]
+                cap, child, level = d["cap"], d["child"], d["level"]
+            else:
+                h = self._host
+                p32 = np.ascontiguousarray(h["planes"].astype(np.float32))
+                pl = [mi.Float(np.ascontiguousarray(p32[:, c])) for c in range(4)]
+                cap, level = mi.Bool(h["cap"]), mi.UInt32(h["level"])
+                child = [mi.Int32(np.ascontiguousarray(h["child"][:, j])) for j in range(3)]
+                near = None if h["near"] is None else mi.Float64(h["near"])
+            self._dr = {"a": pl[0], "b": pl[1], "c": pl[2], "d": pl[3], "cap": cap,
+                        "p": child[0], "i": child[1], "n": child[2], "level": level}
+            if near is not None:
+                self._dr["near"] = mi.Float(near)
             dr.eval(*self._dr.values())
         return self._dr
 
@@ -179,11 +206,12 @@ def _insertion_order(V, light, order):
     return np.argsort(key, kind="stable")
 
 
-def build_top_tree(V: np.ndarray, light, *, origin=None, order="random") -> TopTree:
-    """Algorithm 1 over the triangles ``V`` (T×3×3 world-space vertices) for ``light``: a point
-    (x, y, z, 1) or a direction toward a light at infinity (x, y, z, 0). ``order``: ``random``
-    (a fixed permutation), ``light`` (nearest first), ``scene`` (as given) or an array
-    permutation of the triangles."""
+def build_top_tree_numpy(V: np.ndarray, light, *, origin=None, order="random") -> TopTree:
+    """Algorithm 1 over the triangles ``V`` (T×3×3 world-space vertices) for ``light`` in numpy on
+    the host: the reference :func:`build_top_tree` (on the device) is tested against, node for node.
+    ``light``: a point (x, y, z, 1) or a direction toward a light at infinity (x, y, z, 0).
+    ``order``: ``random`` (a fixed permutation), ``light`` (nearest first), ``scene`` (as given) or
+    an array permutation of the triangles."""
     t0 = time.perf_counter()
     light = np.asarray(light, np.float64)
     V = np.asarray(V, np.float64)
@@ -248,21 +276,11 @@ def build_top_tree(V: np.ndarray, light, *, origin=None, order="random") -> TopT
             dropped += int(drop.sum())
             pend, node = pend[~done], node[~done]
     near = subtree_near(triangle_near(Vo, lo)[owner[:used]], child[:used], depth[:used])
-    return TopTree(
-        near=near,
-        planes=P[:used].copy(),
-        cap=is_cap[:used].copy(),
-        child=child[:used].astype(np.int32),
-        level=depth[:used].astype(np.uint32),
-        origin=origin,
-        light=lo,
-        depth=int(depth[:used].max(initial=0)),
-        triangles=used // 4,
-        dropped=dropped,
-        degenerate=int(bad.sum()),
-        rounds=rounds,
-        seconds=time.perf_counter() - t0,
-    )
+    return TopTree(host={"planes": P[:used].copy(), "cap": is_cap[:used].copy(), "child": child[:used].astype(np.int32),
+                         "level": depth[:used].astype(np.uint32), "near": near},
+                   nodes=used, extent=float(np.abs(P[:used, 3]).max(initial=0.0)), origin=origin, light=lo,
+                   depth=int(depth[:used].max(initial=0)), triangles=used // 4, dropped=dropped,
+                   degenerate=int(bad.sum()), rounds=rounds, seconds=time.perf_counter() - t0)
 
 
 def light_distance(x, light):
@@ -340,9 +358,9 @@ def query(tree: TopTree, x, active=True, deep: bool = True):
     vis = dr.full(mi.Float, 1.0, m)
     visits = dr.zeros(mi.UInt32, m)
     deepest = dr.zeros(mi.UInt32, m)
-    deep = deep and tree.near is not None
+    deep = deep and "near" in A
     if deep:   # a margin of float rounding: prune only what lies clearly beyond the point
-        dx = light_distance(x, tree.light) + 1e-6 * (1.0 + float(np.abs(tree.planes[:, 3]).max(initial=0.0)))
+        dx = light_distance(x, tree.light) + 1e-6 * (1.0 + tree.extent)
 
     def body(sp, vis, visits, deepest, stack):
         sp = dr.maximum(sp, 1) - 1  # lanes already done still run the body in a packet: keep indices in range
@@ -369,3 +387,254 @@ def query(tree: TopTree, x, active=True, deep: bool = True):
                                                labels=("sp", "vis", "visits", "deepest", "stack"),
                                                label="top_tree_query")
     return vis, visits, deepest
+
+
+# ----------------------------------------------------------------------------------------------
+# Algorithm 1 on the device
+
+@dataclass(frozen=True)
+class Triangles:
+    """Triangles uploaded once (:func:`upload_triangles`): ``v[i]`` the world position of vertex i
+    of every triangle (mi.Point3d), ``host`` the same T×3×3 float64 numpy array (the ``light``
+    insertion order sorts on it), ``lo`` / ``hi`` their bounds."""
+
+    v: tuple
+    host: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.host)
+
+
+def upload_triangles(V) -> Triangles:
+    """``V`` (T×3×3 world vertices) as :class:`Triangles` on the device, made once per scene."""
+    V = np.ascontiguousarray(np.asarray(V, np.float64).reshape(-1, 3, 3))
+    v = tuple(mi.Point3d(*(mi.Float64(np.ascontiguousarray(V[:, i, c])) for c in range(3))) for i in range(3))
+    dr.eval(v)
+    flat = V.reshape(-1, 3)
+    lo, hi = (flat.min(0), flat.max(0)) if len(flat) else (np.zeros(3), np.zeros(3))
+    return Triangles(v, V, lo, hi)
+
+
+def _dot(a, b):
+    """a·b summed x, y, z in turn (numpy's order for three terms; no fused multiply-add on LLVM)."""
+    return (a.x * b.x + a.y * b.y) + a.z * b.z
+
+
+def _cross(a, b):
+    """a × b written out as numpy's ``cross`` computes it (Dr.Jit's own uses fused multiply-subtracts)."""
+    return type(a)(a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x)
+
+
+def _device_planes(v, l, w: float, scale):
+    """:func:`triangle_planes` on the device: ([[n.x, n.y, n.z, d] for each of the 4 planes], degenerate)
+    of the triangles ``v`` (3 mi.Point3d about the tree's origin); ``scale``: their largest |coordinate|."""
+    F = mi.Float64
+    lv = mi.Vector3d(*[F(float(c)) for c in l])
+    out, bad = [], dr.zeros(mi.Bool, dr.width(v[0]))
+
+    def unit(n, d):
+        ln = dr.sqrt(_dot(n, n))
+        s = 1.0 / dr.maximum(ln, 1e-300)
+        return n * s, d * s, ln
+
+    for e in range(3):
+        a, b, c = v[e], v[(e + 1) % 3], v[(e + 2) % 3]
+        n = _cross(mi.Vector3d(b - a), lv - w * mi.Vector3d(a))
+        n, d, ln = unit(n, -_dot(n, a))
+        side = _dot(n, c) + d
+        flip = side > 0
+        n, d = dr.select(flip, -n, n), dr.select(flip, -d, d)
+        bad |= (ln <= 1e-24 * scale * scale) | (dr.abs(side) <= 1e-12 * scale)
+        out.append([n.x, n.y, n.z, d])
+    n = _cross(mi.Vector3d(v[1] - v[0]), mi.Vector3d(v[2] - v[0]))
+    n, d, ln = unit(n, -_dot(n, v[0]))
+    at_light = _dot(n, lv) + d * w
+    flip = at_light < 0
+    n, d = dr.select(flip, -n, n), dr.select(flip, -d, d)
+    bad |= (ln <= 1e-24 * scale * scale) | (dr.abs(at_light) <= 1e-12 * (scale if w else 1.0))
+    out.append([n.x, n.y, n.z, d])
+    return out, bad
+
+
+def _device_near(v, light):
+    """:func:`triangle_near` on the device (Float64 per triangle)."""
+    l, w = np.asarray(light[:3], np.float64), float(light[3])
+    if w == 0.0:
+        u = l / np.linalg.norm(l)
+        uv = mi.Vector3d(*[float(c) for c in u])
+        return dr.minimum(dr.minimum(-_dot(mi.Vector3d(v[0]), uv), -_dot(mi.Vector3d(v[1]), uv)),
+                          -_dot(mi.Vector3d(v[2]), uv))
+    c = (v[0] + v[1] + v[2]) / 3.0
+
+    def norm(a):
+        a = mi.Vector3d(a)
+        return dr.sqrt(_dot(a, a))
+    r = dr.maximum(dr.maximum(norm(v[0] - c), norm(v[1] - c)), norm(v[2] - c))
+    return dr.maximum(norm(c - mi.Point3d(*[float(x) for x in l])) - r, 0.0)
+
+
+def _read(*values) -> list:
+    """Width-1 device values read back together (one wait): Python ints."""
+    return [int(x) for x in dr.concat([mi.Float64(x) for x in values]).numpy()]
+
+
+def _hang(tree, planes, tri, base, parent_depth, active):
+    """Write the 4-node subtrees of triangles ``tri`` (where ``active``) at nodes base … base + 3:
+    its three shadow planes chained by their negative links, then its capping plane."""
+    Pn, is_cap, child, depth, owner = tree
+    for j in range(4):
+        k = base + j
+        for c in range(4):
+            dr.scatter(Pn[c], dr.gather(mi.Float64, planes[j][c], tri, active), k, active)
+        dr.scatter(depth, parent_depth + 1 + j, k, active)
+        dr.scatter(owner, tri, k, active)
+    for j in range(3):
+        dr.scatter(child, base + j + 1, (base + j) * 3 + 2, active)
+    dr.scatter(is_cap, True, base + 3, active)
+
+
+def _round(tree, planes, win, links, lane, tri, Vp, node, alive, used, eps):
+    """One round of the build: every pending triangle (``alive``) steps down one link of ``tree``;
+    the first in insertion order (the lowest ``lane``) to reach an empty link takes it. Returns the
+    triangles' nodes and pending flags after the round and (dropped, subtrees hung, triangles
+    left) as a UInt32 array of 3, on the device."""
+    I32, U32, F = mi.Int32, mi.UInt32, mi.Float64
+    Pn, is_cap, child, depth, _ = tree
+    counts = dr.zeros(U32, 3)
+    pl = [dr.gather(F, Pn[c], node, alive) for c in range(4)]
+    n_pl = mi.Vector3d(pl[0], pl[1], pl[2])
+    vals = [_dot(p, n_pl) + pl[3] for p in Vp]
+    pos = (vals[0] > eps) | (vals[1] > eps) | (vals[2] > eps)
+    neg = (vals[0] < -eps) | (vals[1] < -eps) | (vals[2] < -eps)
+    link = dr.select(pos & ~neg, I32(0), dr.select(neg & ~pos, I32(2), I32(1)))
+    drop = alive & dr.gather(mi.Bool, is_cap, node, alive) & (link == 2)
+    key = node * 3 + link
+    nxt = dr.gather(I32, child, key, alive)
+    cand = alive & ~drop & (nxt == _LEAF)
+    node = dr.select(alive & ~drop & (nxt != _LEAF), nxt, node)
+    dr.scatter_reduce(dr.ReduceOp.Min, win, lane, U32(key), cand)
+    dr.scatter_reduce(dr.ReduceOp.Add, counts, U32(1), U32(0), drop)
+    alive = alive & ~drop
+    dr.eval(node, alive, key, cand, win, counts)
+    # the links taken this round (a winner, still empty) in index order: their subtrees' slots
+    taken = U32((win != 0xFFFFFFFF) & (dr.gather(I32, child, links) == _LEAF))
+    slot = dr.prefix_sum(taken)
+    last = dr.width(links) - 1
+    dr.scatter(counts, dr.gather(U32, slot, U32(last)) + dr.gather(U32, taken, U32(last)), U32(1))
+    base = used + 4 * I32(dr.gather(U32, slot, U32(key), cand))
+    first = cand & (dr.gather(U32, win, U32(key), cand) == lane)
+    _hang(tree, planes, tri, base, dr.gather(I32, depth, node, cand), first)
+    dr.scatter(child, base, key, first)
+    node = dr.select(cand, base, node)
+    alive = alive & ~first
+    dr.scatter_reduce(dr.ReduceOp.Add, counts, U32(1), U32(2), alive)
+    dr.eval(node, alive, tree, counts)
+    return node, alive, counts
+
+
+class _Builds:
+    """The owner of the build rounds' recordings (:func:`~shadowlab.render.replay.replayed`): they read
+    no Mitsuba scene, only the tree's own arrays, so they live with the process (least recently used
+    dropped first)."""
+
+
+_BUILDS = _Builds()
+
+
+def build_top_tree(V, light, *, origin=None, order="random") -> TopTree:
+    """Algorithm 1 over the triangles ``V`` (T×3×3 world-space vertices, or :class:`Triangles`
+    already on the device) for ``light``: a point (x, y, z, 1) or a direction toward a light at
+    infinity (x, y, z, 0), on the device. ``order``: ``random`` (a fixed permutation), ``light``
+    (nearest first), ``scene`` (as given) or an array permutation of the triangles.
+
+    The rounds of :func:`build_top_tree_numpy` as Dr.Jit kernels over every pending triangle at
+    once: a triangle descends one link per round; the first in insertion order to reach an empty
+    link takes it (a ``Min`` scatter-reduction over the links), and the links taken in a round get
+    their subtrees in the order of their index (a prefix sum over the links), as numpy's sorted
+    ``unique`` gives them, so the tree is the reference's node for node. One wait per round (how
+    many triangles are left) and one at the start (which triangles are degenerate)."""
+    t0 = time.perf_counter()
+    tris = V if isinstance(V, Triangles) else upload_triangles(V)
+    light = np.asarray(light, np.float64)
+    if origin is None:
+        origin = light[:3] if light[3] else (tris.lo + tris.hi) / 2
+    origin = np.asarray(origin, np.float64)
+    lo = np.concatenate([light[:3] - origin * light[3], light[3:]])
+    T = len(tris)
+    I32, U32, F = mi.Int32, mi.UInt32, mi.Float64
+    o = mi.Point3d(*[float(c) for c in origin])
+    v = tuple(p - o for p in tris.v)
+    if T:
+        scale = dr.max(dr.maximum(dr.maximum(dr.max(dr.abs(v[0])), dr.max(dr.abs(v[1]))), dr.max(dr.abs(v[2]))))
+        scale_h = float(dr.maximum(scale, 1e-30)[0])
+    else:
+        scale_h = 1e-30
+    planes, bad = _device_planes(v, lo[:3], float(lo[3]), scale_h)
+    if isinstance(order, np.ndarray):
+        perm = I32(np.asarray(order, np.int32))
+    elif order == "random":
+        perm = I32(np.random.default_rng(ORDER_SEED).permutation(T).astype(np.int32))
+    elif order == "scene":
+        perm = dr.arange(I32, T)
+    else:
+        perm = I32(_insertion_order(tris.host - origin, lo, order).astype(np.int32))
+    seq = dr.gather(I32, perm, dr.compress(~dr.gather(mi.Bool, bad, perm)))
+    n_seq = dr.width(seq) if T else 0
+    eps = 1e-9 * scale_h
+    cap_n = 4 * n_seq
+    Pn = [dr.zeros(F, cap_n) for _ in range(4)]
+    is_cap = dr.zeros(mi.Bool, cap_n)
+    child = dr.full(I32, _LEAF, 3 * cap_n)
+    depth = dr.zeros(I32, cap_n)
+    owner = dr.zeros(I32, cap_n)
+
+    rounds = dropped = used = 0
+    tree = (Pn, is_cap, child, depth, owner)
+    if n_seq:
+        _hang(tree, planes, dr.gather(I32, seq, I32(0)), I32(0), I32(0), mi.Bool(True))
+        used = 4
+    if n_seq > 1:
+        M = n_seq - 1
+        lane = dr.arange(U32, M)
+        tri = dr.gather(I32, seq, lane + 1)
+        Vp = [dr.gather(mi.Point3d, p, tri) for p in v]
+        node = dr.zeros(I32, M)
+        alive = dr.full(mi.Bool, True, M)
+        win = dr.full(U32, 0xFFFFFFFF, 3 * cap_n)
+        links = dr.arange(I32, 3 * cap_n)
+        eps_dr = dr.opaque(F, eps)
+        dr.eval(planes, tri, Vp, node, alive, win, links, tree)
+        left = M
+        while left:
+            rounds += 1
+            # one recording per tree size, replayed for the other rounds and frames (the tree's arrays are
+            # its only inputs, so a replay costs no walk over a Mitsuba scene's)
+            node, alive, counts = replayed("top_tree_round", (cap_n,), _round, _BUILDS, tree, planes, win, links, lane,
+                                           tri, Vp, node, alive, dr.opaque(I32, used), eps_dr)
+            d, new, left = (int(x) for x in counts.numpy())
+            if rounds > cap_n:   # each round takes every pending triangle one level down a tree of cap_n nodes
+                raise RuntimeError(f"TOP tree build: {left} triangles still pending after {rounds} rounds")
+            dropped += d
+            used += 4 * new
+    k = dr.arange(I32, used)
+    Pn = [dr.gather(F, p, k) for p in Pn]
+    child = [dr.gather(I32, child, k * 3 + j) for j in range(3)]
+    is_cap, depth, owner = dr.gather(mi.Bool, is_cap, k), dr.gather(I32, depth, k), dr.gather(I32, owner, k)
+    near = dr.gather(F, _device_near(v, lo), owner)
+    dr.eval(Pn, child, is_cap, depth, near)
+    top = _read(dr.max(depth))[0] if used else 0
+    for lv in range(top, 0, -1):
+        here = depth == lv
+        m = near
+        for j in range(3):
+            has = here & (child[j] >= 0)
+            m = dr.select(has, dr.minimum(m, dr.gather(F, near, child[j], has)), m)
+        near = dr.select(here, m, near)
+        dr.eval(near)
+    extent = float(dr.max(dr.abs(Pn[3]))[0]) if used else 0.0
+    return TopTree(
+        device={"planes": Pn, "cap": is_cap, "child": child, "level": U32(depth), "near": near},
+        nodes=used, extent=extent, origin=origin, light=lo, depth=top, triangles=used // 4, dropped=dropped,
+        degenerate=T - n_seq, rounds=rounds, seconds=time.perf_counter() - t0)

@@ -175,6 +175,9 @@ class Scene:
     bbox_max: tuple = field(default=(0, 0, 0))
     shape_boxes: list = field(default_factory=list)  # (min, max) of each non-emitting shape and casting panel
     occluders: Casters | None = None  # the casting geometry's own Mitsuba scene; None: every surface casts
+    #: what frames derive from the geometry alone, made once and shared by every frame of the scene (and
+    #: its camera path's frames, which keep the geometry): keyed by what it was made from
+    derived: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def casters(self) -> "Scene":

@@ -82,7 +82,8 @@ import drjit as dr
 import mitsuba as mi
 
 from ..render.top_tree import ORDERS, offset_point, query
-from .base import LightResult, Param, Pooled, Technique, light_scale_param, param_table_markdown, register, scaled_size
+from .base import (LightResult, Param, Pooled, Technique, device_count, device_total, light_scale_param,
+                   param_table_markdown, register, scaled_size)
 from .blocker_search import (PCF_COUNTS, blocked, pattern_arrays, pcf_pattern, penumbra_width, scene_light_size,
                              search_width)
 from .shadow_map import (BIAS_PARAMS, ShadowMapTechnique, depth_test, map_entry, map_stats, receiver,
@@ -185,11 +186,13 @@ class _Fused(_TreeFamily, ShadowMapTechnique):
         return rec, dr.select(edge, tv, h0), edge, tree_aovs, tree
 
     def light_stats(self, frame, light, values, ctx, result):
-        act = result.active.numpy()
-        edge = result.aovs["edge"].numpy() > 0.5
-        nv = result.aovs["nodes_visited"].numpy()
-        return {"edge_fraction": Pooled(float((edge & act).sum()), int(act.sum())),
-                "nodes_per_query": Pooled(float(nv[edge].sum()), int(edge.sum()))}
+        """Edge points per active point and tree nodes per query, counted on the device (read with
+        the render's other stats)."""
+        edge = result.aovs["edge"] > 0.5
+        return {"edge_fraction": Pooled(device_total(dr.select(edge & result.active, 1.0, 0.0)),
+                                        device_count(result.active)),
+                "nodes_per_query": Pooled(device_total(dr.select(edge, result.aovs["nodes_visited"], 0.0)),
+                                          device_count(edge))}
 
 
 def _point_only(name, spec):
