@@ -253,3 +253,52 @@ def test_lights_cast_together_each_skip_their_own_panel(fresh, monkeypatch):
         got = light_views(sc, lights, [None, None], res=32)
         assert all(_equal(_arrays(g), _arrays(w)) for g, w in zip(got, want))
     assert len(fresh._stages) == 1 and not fresh._failed
+
+
+@pytest.mark.parametrize("plane", [True, False])
+def test_replayed_ssss_blurs_have_the_traced_bits(fresh, monkeypatch, plane):
+    """ssss's two blur passes replayed equal them traced, for four calls with one camera and for
+    another camera (whose axes the tangent-plane depths compile in: its own recording), each call
+    with new layer values."""
+    import drjit as dr
+    import mitsuba as mi
+    from shadowlab.render.camera import Camera
+    from shadowlab.render.frame import make_frame
+    from shadowlab.render.screen import Screen
+    from shadowlab.scene import load
+    from shadowlab.techniques import ssss
+    scr = make_frame(load("two_lights", resolution=(40, 24)), u_strata=1).screen
+    c = scr.camera
+    moved = Camera(c.position + 0.3, c.target, up=c.up_given, fov=c.fov, width=c.width, height=c.height)
+    rng = np.random.default_rng(1)
+    thr = dr.opaque(mi.Float, 0.05)
+    for screen in (scr, Screen(moved, scr.ss, scr.position, scr.normal, scr.valid)):
+        for k in range(4):           # traced, recorded, replayed twice: each with its own layer values
+            n = dr.width(screen.depth)
+            vals = [mi.Float(rng.random(n).astype(np.float32)) for _ in range(2)]
+            sig = [mi.Float((3.0 * rng.random(n)).astype(np.float32)) for _ in range(2)]
+            got = [np.asarray(v.numpy()) for v in ssss.blur_full(screen, vals, sig, 9, thr, plane)]
+            want = _traced(monkeypatch, lambda: [np.asarray(v.numpy())
+                                                 for v in ssss.blur_full(screen, vals, sig, 9, thr, plane)])
+            assert _equal(got, want), k
+            assert not np.array_equal(got[0], np.asarray(vals[0].numpy()))     # the blur changed something
+    assert not fresh._failed
+    assert len([k for k in fresh._stages if k[0] == "ssss_blur"]) == 2          # one recording per camera
+
+
+def test_tree_rounds_replay_across_trees_of_one_size(fresh):
+    """On a GPU the build's rounds are recorded once per tree size and replayed by every later round and
+    build, trees of other lights over the same triangles included (on the CPU they are traced: a replay
+    copies the arrays it writes); each tree equals the numpy reference's."""
+    from conftest import CUDA
+    from shadowlab.render import replay
+    from shadowlab.render.top_tree import _BUILDS, build_top_tree, build_top_tree_numpy
+    V = np.random.default_rng(4).uniform(-1, 1, (60, 3, 3))
+    sizes = set()
+    for k, light in enumerate(([0.2, 3.0, 0.1, 1.0], [-0.5, 2.5, 0.4, 1.0], [0.3, -1.0, 0.2, 0.0])):
+        a = build_top_tree_numpy(V, np.array(light))
+        b = build_top_tree(V, np.array(light))
+        assert b.rounds > 3 and np.array_equal(a.child, b.child) and np.array_equal(a.level, b.level), k
+        sizes.add(4 * (len(V) - b.degenerate))
+    assert len(sizes) == 1 and replay.recordings("top_tree_round", (sizes.pop(),), _BUILDS) == (1 if CUDA else 0)
+    assert not fresh._failed

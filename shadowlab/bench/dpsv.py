@@ -403,7 +403,8 @@ def _soft_md(s: dict) -> list:
 
 def _build_md(b: dict) -> list:
     lines = ["", "## TOP-tree build time against triangle count", "",
-             f"Algorithm 1 (numpy, level-synchronous) under a point light at {tuple(b['light'])}, insertion order "
+             "Algorithm 1 on the device (Dr.Jit kernels, level-synchronous: one round per tree level; its kernels "
+             f"compiled by an untimed build first) under a point light at {tuple(b['light'])}, insertion order "
              "`random` (the default, a fixed permutation) and `light` (nearest first): a displaced grid (a "
              "heightfield, no triangle in another's shadow) and a field of small random boxes (12 triangles each, "
              "over each other).", "",

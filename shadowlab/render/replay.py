@@ -1,32 +1,35 @@
 """Frame stages traced once per configuration and replayed: Dr.Jit's frozen functions (``dr.freeze``).
 
 A frame stage (the G-buffer with the unshadowed light, a light's views, a wavefront of a virtual
-map's tiles) is one Dr.Jit kernel, but tracing it in Python and generating its code can cost more
-host time than the kernel runs on a GPU (``shadowlab bench --only frames`` splits a frame into
-its kernels and host time). :func:`replayed` traces a stage as usual the first time a
-configuration is met, records its kernels the second time and afterwards launches the recorded
-kernels with the new inputs, skipping the tracing.
+map's tiles, a round of a TOP tree's build on a GPU, ssss's blur passes) is one Dr.Jit kernel or a
+few, but tracing it in Python and generating its code can cost more host time than the kernel runs
+on a GPU (``shadowlab bench --only frames`` splits a frame into its kernels and host time).
+:func:`replayed` traces a stage as usual the first time a configuration is met, records its kernels
+the second time and afterwards launches the recorded kernels with the new inputs, skipping the
+tracing.
 
 The contract of a stage ``fn(*inputs)`` called through :func:`replayed`:
 
 * every Dr.Jit array it reads comes from ``inputs`` (Dr.Jit arrays, Mitsuba objects such as the
-  ``mi.Scene``, and lists, tuples, dicts or dataclasses of them): Dr.Jit refuses to record a
-  stage that reads an array made before the call from anywhere else;
-* every Python value that shapes its trace (sizes, flags, literals, the scene description) is
-  in ``key``: the stage is recorded once per distinct key, and a key already seen replays its
-  recording whatever else changed;
+  ``mi.Scene``, and lists, tuples, dicts or dataclasses of them): Dr.Jit refuses to record a stage
+  that reads an array made before the call from anywhere else;
+* every Python value that shapes its trace (sizes, flags, literals, the scene description) is in
+  ``key``: the stage is recorded once per distinct key, and a key already seen replays its recording
+  whatever else changed;
 * its Mitsuba scene is the one it was recorded with: recordings are kept per ``owner`` (the
   shadowlab Scene whose ``mi_scene`` the stage reads) and forgotten when the owner is collected.
-  Replaying a recording with another scene of the same description is what Dr.Jit allows, but
-  with drjit 1.5.0 it gave wrong maps and crashes in our tests, so it is not done. Nor does a
-  recording keep its scene alive: every Mitsuba object alive is traced into each call through
-  a pointer (a BSDF's ``eval``), so scenes kept for their recordings slowed every later kernel.
+  Replaying a recording with another scene of the same description is what Dr.Jit allows, but with
+  drjit 1.5.0 it gave wrong maps and crashes in our tests, so it is not done. A stage that reads no
+  Mitsuba object (the tree's rounds, ssss's blurs) has a module-level owner and lives with the
+  process. Nor does a
+  recording keep its scene alive: every Mitsuba object alive is traced into each call through a
+  pointer (a BSDF's ``eval``), so scenes kept for their recordings slowed every later kernel.
 
 Replays give the bits of a fresh trace (the same kernels on the same data; tests/test_replay.py
-checks it against the unrecorded stage, for moved light cameras and another scene object too). A stage whose inputs
-carry gradients, or called while a frozen function is being recorded, runs unrecorded.
-``SHADOWLAB_REPLAY=0`` turns recording off for the process (every stage traced each time, as
-before).
+checks it against the unrecorded stage, for moved light cameras and another scene object too). A
+stage whose inputs carry gradients, or called while a frozen function is being recorded, runs
+unrecorded. ``SHADOWLAB_REPLAY=0`` turns recording off for the process (every stage traced each
+time, as before).
 """
 
 from __future__ import annotations

@@ -518,6 +518,9 @@ def _round(tree, planes, win, links, lane, tri, Vp, node, alive, used, eps):
     dr.scatter_reduce(dr.ReduceOp.Add, counts, U32(1), U32(0), drop)
     alive = alive & ~drop
     dr.eval(node, alive, key, cand, win, counts)
+    # nothing pending may still read the tree when it is written below: Dr.Jit would copy every array
+    # a pending gather reads before scattering into it (copy on write), megabytes per round
+    del pl, n_pl, vals, pos, neg, link, drop, nxt
     # the links taken this round (a winner, still empty) in index order: their subtrees' slots
     taken = U32((win != 0xFFFFFFFF) & (dr.gather(I32, child, links) == _LEAF))
     slot = dr.prefix_sum(taken)
@@ -525,7 +528,9 @@ def _round(tree, planes, win, links, lane, tri, Vp, node, alive, used, eps):
     dr.scatter(counts, dr.gather(U32, slot, U32(last)) + dr.gather(U32, taken, U32(last)), U32(1))
     base = used + 4 * I32(dr.gather(U32, slot, U32(key), cand))
     first = cand & (dr.gather(U32, win, U32(key), cand) == lane)
-    _hang(tree, planes, tri, base, dr.gather(I32, depth, node, cand), first)
+    parent_depth = dr.gather(I32, depth, node, cand)
+    dr.eval(base, first, parent_depth)
+    _hang(tree, planes, tri, base, parent_depth, first)
     dr.scatter(child, base, key, first)
     node = dr.select(cand, base, node)
     alive = alive & ~first
@@ -607,12 +612,16 @@ def build_top_tree(V, light, *, origin=None, order="random") -> TopTree:
         eps_dr = dr.opaque(F, eps)
         dr.eval(planes, tri, Vp, node, alive, win, links, tree)
         left = M
+        # on a GPU each round is one recording per tree size, replayed for the other rounds and frames (the
+        # tree's arrays are its only inputs: a replay walks no Mitsuba scene), which spares the host the
+        # tracing that costs more there than the round's kernels; on the CPU a replay copies the arrays it
+        # writes (Dr.Jit protects a frozen function's inputs) and the traced round is the faster
+        rnd = (lambda *a: replayed("top_tree_round", (cap_n,), _round, _BUILDS, *a)) \
+            if mi.variant().startswith("cuda") else _round
         while left:
             rounds += 1
-            # one recording per tree size, replayed for the other rounds and frames (the tree's arrays are
-            # its only inputs, so a replay costs no walk over a Mitsuba scene's)
-            node, alive, counts = replayed("top_tree_round", (cap_n,), _round, _BUILDS, tree, planes, win, links, lane,
-                                           tri, Vp, node, alive, dr.opaque(I32, used), eps_dr)
+            node, alive, counts = rnd(tree, planes, win, links, lane, tri, Vp, node, alive, dr.opaque(I32, used),
+                                      eps_dr)
             d, new, left = (int(x) for x in counts.numpy())
             if rounds > cap_n:   # each round takes every pending triangle one level down a tree of cap_n nodes
                 raise RuntimeError(f"TOP tree build: {left} triangles still pending after {rounds} rounds")

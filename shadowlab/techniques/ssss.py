@@ -96,6 +96,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..errors import InputError
+from ..render.replay import replayed
 from ..scene.light_layers import colour, lit_volume
 from .base import LightResult, Param, light_scale_param, param_table_markdown, register, scaled_size
 from .blocker_search import (BLOCKER_COUNTS, penumbra_width, scene_light_size, search_arrays,
@@ -283,20 +284,33 @@ def _plane(camera, p, n):
     return n, dr.dot(n, mi.Point3f(p) - o)
 
 
-def full_grid(screen) -> Grid:
-    pn, pc = _plane(screen.camera, screen.position, screen.normal)
-    return Grid(screen.camera, screen.width, screen.height, screen.x, screen.y, screen.depth, screen.valid,
-                pn, pc, screen.index)
+class _Blurs:
+    """The owner of the blur stages' recordings (:func:`~shadowlab.render.replay.replayed`): they read
+    the screen's arrays and the layers, no Mitsuba object."""
+
+
+_BLURS = _Blurs()
 
 
 def blur_full(screen, values: list, sigmas: list, kernel: int, thr, plane: bool, span=None) -> list:
     """The two passes on the screen's (sub-)pixel grid, G-buffer order, of every layer of
-    ``values`` (with its ``sigmas``): each pass of every layer in one stage."""
-    g = full_grid(screen)
-    for axis in ("x", "y"):
-        values = [_blur_pass(v, sg, g, axis, kernel, thr, plane, span) for v, sg in zip(values, sigmas)]
-        dr.eval(*values)
-    return values
+    ``values`` (with its ``sigmas``): each pass of every layer in one stage, the pair replayed
+    once recorded (the camera, whose axes the tangent planes' depths compile in, is in its key)."""
+    c = screen.camera
+    key = (len(values), int(kernel), bool(plane), span is None, screen.width, screen.height, screen.ss, c.width,
+           tuple(map(float, c.position)), tuple(map(float, c.forward)), tuple(map(float, c.right)),
+           tuple(map(float, c.up)), float(c.tan_x), float(c.tan_y))
+
+    def stage(values, sigmas, thr, span, x, y, depth, valid, position, normal):
+        pn, pc = _plane(c, position, normal)
+        g = Grid(c, screen.width, screen.height, x, y, depth, valid, pn, pc, screen.index)
+        for axis in ("x", "y"):
+            values = [_blur_pass(v, sg, g, axis, kernel, thr, plane, span) for v, sg in zip(values, sigmas)]
+            dr.eval(*values)
+        return values
+
+    return list(replayed("ssss_blur", key, stage, _BLURS, list(values), list(sigmas), thr, span, screen.x,
+                         screen.y, screen.depth, screen.valid, screen.position, screen.normal))
 
 
 def blur_half(screen, values: list, sigmas: list, kernel: int, thr, plane: bool, span=None) -> list:
