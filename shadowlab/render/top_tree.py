@@ -605,9 +605,10 @@ def build_top_tree(V, light, *, origin=None, order="random") -> TopTree:
         lane = dr.arange(U32, M)
         tri = dr.gather(I32, seq, lane + 1)
         Vp = [dr.gather(mi.Point3d, p, tri) for p in v]
-        node = dr.zeros(I32, M)
-        alive = dr.full(mi.Bool, True, M)
-        win = dr.full(U32, 0xFFFFFFFF, 3 * cap_n)
+        # opaque, not literal: the first round then has the inputs' layout of the later ones (one recording)
+        node = dr.opaque(I32, 0, M)
+        alive = dr.opaque(mi.Bool, True, M)
+        win = dr.opaque(U32, 0xFFFFFFFF, 3 * cap_n)
         links = dr.arange(I32, 3 * cap_n)
         eps_dr = dr.opaque(F, eps)
         dr.eval(planes, tri, Vp, node, alive, win, links, tree)
