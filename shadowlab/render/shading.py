@@ -179,7 +179,8 @@ def light_samples(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False
     RGB transmittance τ (:func:`transmitted`) and ``v`` sums its channel mean; three more values
     come back: ``fv_rgb`` (Color3f, Σ |f|·τ per channel; ``fv`` is its channel mean), ``lit``
     and ``dark`` (Float, samples with τ = 1, resp. 0, in every channel: where either is k², the
-    samples were unanimous).
+    samples were unanimous). Without ``shadow`` the samples of a point off the surfaces or beyond
+    the light's range (``win`` = 0) are skipped: their contributions are zero, and ``v`` is 0 there.
 
     Sample i's stratum is (i mod k, i div k), kept as two counters rather than divided out per
     sample (the same values; on the CPU, together with ``radiance=False``, the truth's samples
@@ -197,9 +198,15 @@ def light_samples(mi_scene, si, emitter, rng, k, shadow, stratified, alpha=False
     dark = dr.zeros(mi.Float, n) if coloured else None
     i = mi.UInt32(0)
     kk = k * k
+    # without shadow rays a point off the surfaces or beyond the light's range sums only zeros:
+    # its samples are not taken (the same bits)
+    taken = kk
+    if not shadow:
+        reached = si.is_valid() if win is None else si.is_valid() & (win > 0)
+        taken = dr.select(reached, kk, 0)
     sx = mi.UInt32(0)
     sy = mi.UInt32(0)
-    while i < kk:
+    while i < taken:
         if stratified:
             u = mi.Point2f((mi.Float(sx) + rng.next_float32()) / mi.Float(k),
                            (mi.Float(sy) + rng.next_float32()) / mi.Float(k))
