@@ -9,16 +9,17 @@ pass included) and [Tamás 2015, §7] its milliseconds. For every technique that
 
 * **new frame**: ``make_frame`` (G-buffer and unshadowed light) on a fresh frame, then the
   technique's render on it, every light view cast anew, after :data:`WARMUP_FRAMES` untimed new
-  frames (the G-buffer and the light views are replayed stages, :mod:`shadowlab.render.replay`:
-  the first frame traces them, the second records them). Split into *G-buffer* (``make_frame``),
-  *light views* (the wall time of the calls to ``FrameContext.light_view`` and ``top_tree`` that
-  cast a map or built a tree, each between ``dr.sync_thread()`` calls, the view evaluated), and
-  *technique* (the render's wall time less its light views). *Host* is the part of the new frame's
-  wall time in which no kernel ran: wall time minus the kernels' execution times from Dr.Jit's
-  kernel history (``execution_time`` of every entry: JIT kernels, reductions, copies, memsets),
-  i.e. tracing, Python, numpy and waiting on readbacks. It overlaps the other three (it is a share
-  of them, not a fourth addend). Virtual maps cast their tiles inside the technique at every
-  render, without a cache: there the shadow pass is in *technique*, and warm ≈ new;
+  frames (the G-buffer and the light views are replayed stages, :mod:`shadowlab.render.replay`: the
+  first frame traces them, the second records them, the third is the first replay). Split into
+  *G-buffer* (``make_frame``), *light views* (the wall time of the calls to
+  ``FrameContext.light_view`` and ``top_tree`` that cast a map or built a tree, each between
+  ``dr.sync_thread()`` calls, the view evaluated), and *technique* (the render's wall time less its
+  light views). *Host* is the part of the new frame's wall time in which no kernel ran: wall time
+  minus the kernels' execution times from Dr.Jit's kernel history (``execution_time`` of every
+  entry: JIT kernels, reductions, copies, memsets), i.e. tracing, Python, numpy and waiting on
+  readbacks. It overlaps the other three (it is a share of them, not a fourth addend). Virtual maps
+  cast their tiles inside the technique at every render, without a cache: there the shadow pass is
+  in *technique*, and warm ≈ new;
 * **warm**: the render again on the same frame, its light views cached (median of warm runs);
 * **kernels and transfers** per frame, from the kernel history of the timed new frame and of one
   more warm render: JIT kernels launched, other entries (reductions, memsets, copies), and
@@ -66,8 +67,9 @@ SIZE = (1920, 1080)
 #: warm renders timed per technique (median)
 REPEATS = 5
 #: new frames before the timed one: the first traces and compiles every kernel, the second records the
-#: frame's stages (render/replay.py), so the timed one replays them, as every later frame of a run does
-WARMUP_FRAMES = 2
+#: frame's stages (render/replay.py), the third replays them for the first time (the virtual maps still
+#: compiled a kernel or two there on a GPU), so the timed one is as every later frame of a run
+WARMUP_FRAMES = 3
 _PACKAGE = str(Path(__file__).resolve().parents[1])
 _BENCH = str(Path(__file__).resolve().parent)
 
@@ -75,7 +77,7 @@ _BENCH = str(Path(__file__).resolve().parent)
 @dataclasses.dataclass
 class TimedFrame(FrameContext):
     """A :class:`~shadowlab.render.frame.FrameContext` that times the light views and TOP trees it
-    casts (while ``timing["on"]``): each call between ``dr.sync_thread()`` calls, the view evaluated,
+    casts (while ``timing["on"]``): each cast between ``dr.sync_thread()`` calls, the view evaluated,
     its kernels taken from the kernel history apart from the technique's."""
 
     timing: dict = dataclasses.field(default_factory=lambda: {"on": True, "views_s": 0.0, "casts": 0,
@@ -85,26 +87,25 @@ class TimedFrame(FrameContext):
     def of(cls, frame: FrameContext) -> "TimedFrame":
         return cls(scene=frame.scene, gbuffer=frame.gbuffer, unshadowed=frame.unshadowed, sdf=frame.sdf)
 
-    def _timed(self, cast, made):
+    def _timed(self, cast, n: int):
         if not self.timing["on"]:
             return cast()
         dr.sync_thread()
         self.timing["other_kernels"] += dr.kernel_history()
-        n = made()
         t0 = time.perf_counter()
         out = cast()
         dr.eval(out)
         dr.sync_thread()
         self.timing["views_s"] += time.perf_counter() - t0
-        self.timing["casts"] += made() - n
+        self.timing["casts"] += n
         self.timing["view_kernels"] += dr.kernel_history()
         return out
 
-    def light_views_of(self, *args, **kwargs):
-        return self._timed(lambda: super(TimedFrame, self).light_views_of(*args, **kwargs), lambda: len(self._views))
+    def cast(self, requests):
+        return self._timed(lambda: super(TimedFrame, self).cast(requests), len(requests))
 
     def top_tree(self, *args, **kwargs):
-        return self._timed(lambda: super(TimedFrame, self).top_tree(*args, **kwargs), lambda: 0)
+        return self._timed(lambda: super(TimedFrame, self).top_tree(*args, **kwargs), 0)
 
 
 def first_sync(fn) -> str | None:
@@ -202,7 +203,7 @@ def measure(sc, name: str, *, repeats: int = REPEATS, raw_cache: dict | None = N
     """One technique on one loaded scene: new frame, warm, kernels, first syncs, raw limit."""
     t = base.get(name)
     p = t.resolve({})
-    for _ in range(WARMUP_FRAMES):                 # compiles every kernel, then records the frame's stages
+    for _ in range(WARMUP_FRAMES):                 # compiles every kernel, records the frame's stages, replays
         new_frame(sc, t, p)
     frame, r, split = new_frame(sc, t, p)
     warm = warm_frame(frame, t, p, repeats)
@@ -289,7 +290,8 @@ def markdown(res: dict) -> str:
              f"{' (--quick: small sizes, not for figures)' if res['quick'] else ''}.", "",
              f"New frame: `make_frame` and the render on a fresh frame, every light view cast anew (ms), after "
              f"{WARMUP_FRAMES} untimed new frames (the first compiles the kernels, the second records the G-buffer "
-             "and light-view stages, which the timed frame replays, as every later frame of a run does), split into "
+             "and light-view stages, the third replays them first; the timed frame is as every later frame of a "
+             "run), split into "
              "G-buffer, light views (the casts of maps and TOP trees, each synchronised) and technique (the rest "
              "of the render); host: the new frame's wall time in which no kernel ran (wall minus the kernels' "
              "execution times from Dr.Jit's kernel history; a share of the other three, not an addend). Warm: the "

@@ -15,6 +15,7 @@ refuse it.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -26,11 +27,35 @@ from . import sdf_gbuffer
 from .camera import Camera
 from .gbuffer import GBuffer, gbuffer, vec_numpy
 from .gbuffer import evaluate as evaluate_gbuffer
-from .lightview import LightView, SceneSphere, light_views
+from .lightview import LightView, SceneSphere, ViewRequest, cast_views
 from .replay import replayed
 from .screen import Screen
 from .shading import unshadowed
 from .top_tree import TopTree, build_top_tree, upload_triangles
+
+
+class ViewKey(NamedTuple):
+    """A light view a frame casts once: :func:`~shadowlab.render.lightview.light_view`'s arguments,
+    the light by name (``res``/``bits`` None: the light's own; ``fit`` None: the whole scene)."""
+
+    name: str
+    res: int | None = None
+    bits: int | None = None
+    backface: bool = False
+    fit: object = None
+    layers: int = 1
+    translucent: bool = False
+
+    def resolved(self, scene) -> ViewKey:
+        """The key with the light's own settings filled in (translucency only where the scene has it)."""
+        sp = scene.spec.light(self.name)
+        return ViewKey(self.name, int(self.res or sp.shadow_map), int(self.bits or sp.depth_bits), bool(self.backface),
+                       SceneSphere() if self.fit is None else self.fit, int(self.layers),
+                       bool(self.translucent and scene.has_translucent))
+
+    def request(self, scene) -> ViewRequest:
+        return ViewRequest(scene.spec.light(self.name), self.fit, self.res, self.bits, self.backface, self.layers,
+                           self.translucent)
 
 
 @dataclass
@@ -144,25 +169,29 @@ class FrameContext:
     def light_views_of(self, light_name, fits, res: int | None = None, bits: int | None = None,
                        backface: bool = False, layers: int = 1, translucent: bool = False) -> list:
         """:meth:`light_view` for each fit of ``fits`` of the light ``light_name`` (or of each light
-        of a list of names, one per fit); those not cast yet are cast together
-        (:func:`~shadowlab.render.lightview.light_views`: a light's cascades, or lights that share a
-        map size, in one stage)."""
+        of a list of names, one per fit), through :meth:`views`."""
         names = list(light_name) if isinstance(light_name, (list, tuple)) else [light_name] * len(fits)
-        specs = [self.scene.spec.light(n) for n in names]
+        return self.views([ViewKey(n, res, bits, backface, f, layers, translucent) for n, f in zip(names, fits)])
+
+    def views(self, keys) -> list:
+        """The light views of ``keys`` (:class:`ViewKey`), each cast once per frame; those not cast
+        yet are cast together, whatever their lights, fits and map settings
+        (:func:`~shadowlab.render.lightview.cast_views`: one stage)."""
         self.require_mitsuba_geometry()
-        translucent = bool(translucent and self.scene.has_translucent)
-        tail = ((int(layers),) if layers > 1 else ()) + (("translucent",) if translucent else ())
-        fits = [SceneSphere() if f is None else f for f in fits]
-        keys = [(n, int(res or sp.shadow_map), int(bits or sp.depth_bits), bool(backface), f) + tail
-                for n, sp, f in zip(names, specs, fits)]
-        missing = {k: (sp, f) for k, sp, f in zip(keys, specs, fits) if k not in self._views}
-        for size in dict.fromkeys(k[1] for k in missing):     # one stage per map size
-            group = {k: v for k, v in missing.items() if k[1] == size}
-            views = light_views(self.scene, [sp for sp, _ in group.values()], [f for _, f in group.values()],
-                                res=size, bits=bits, backface=bool(backface), layers=int(layers),
-                                translucent=translucent)
-            self._views.update(zip(group, views))
+        keys = [k.resolved(self.scene) for k in keys]
+        missing = list(dict.fromkeys(k for k in keys if k not in self._views))
+        if missing:
+            self._views.update(zip(missing, self.cast([k.request(self.scene) for k in missing])))
         return [self._views[k] for k in keys]
+
+    def has_view(self, key: ViewKey) -> bool:
+        """Whether the light view of ``key`` is cast already (:meth:`views` returns it without a cast)."""
+        return key.resolved(self.scene) in self._views
+
+    def cast(self, requests) -> list:
+        """The light views of ``requests`` (:class:`~shadowlab.render.lightview.ViewRequest`), cast now,
+        uncached (:meth:`views` caches what it casts here; the benchmarks time this call)."""
+        return cast_views(self.scene, requests)
 
     def triangles(self, segments: int = 64) -> np.ndarray:
         """The scene's triangles (T×3×3, world; :func:`~shadowlab.scene.mesh.scene_triangles`), made

@@ -385,8 +385,14 @@ def projection(light, scene, res: int | None = None, fit=None) -> Projection:
     module table)."""
     res = int(res or light.shadow_map)
     fit = SceneSphere() if fit is None else fit
-    if isinstance(fit, SceneSphere):
-        return _scene_sphere(light, scene, res)
+    if isinstance(fit, SceneSphere):  # the geometry's alone: made once per scene (every frame casts it)
+        memo = getattr(scene, "derived", None)
+        if memo is None:
+            return _scene_sphere(light, scene, res)
+        key = ("scene_sphere", light, res)
+        if key not in memo:
+            memo[key] = _scene_sphere(light, scene, res)
+        return memo[key]
     if isinstance(fit, FrustumSlice):
         return _frustum_slice(light, scene, res, fit)
     if isinstance(fit, TileRect):
@@ -775,36 +781,55 @@ class _Cast:
 def light_views(scene, light, fits, res: int | None = None, bits: int | None = None, backface: bool = False,
                 layers: int = 1, translucent: bool = False) -> list:
     """:func:`light_view` for each fit of ``fits`` (None: :class:`SceneSphere`) of ``light`` (a
-    LightSpec, or a list of them, one per fit): the views of one configuration (faces, projection
-    kind, clipping, depth format, the light's own panel or none) are cast in one stage (one kernel,
-    and one replay: the scene's arrays are walked once for all of a light's cascades, or for all
-    the lights of a scene that share a map size)."""
-    owner, scene = scene, scene.casters  # the map holds what casts shadows (``casts_shadows``)
+    LightSpec, or a list of them, one per fit), cast together (:func:`cast_views`)."""
     lights = list(light) if isinstance(light, (list, tuple)) else [light] * len(fits)
+    return cast_views(scene, [ViewRequest(l, f, res, bits, backface, layers, translucent)
+                              for l, f in zip(lights, fits)])
+
+
+@dataclass(frozen=True)
+class ViewRequest:
+    """One light view to cast: :func:`light_view`'s arguments (``light`` a LightSpec)."""
+
+    light: object
+    fit: object = None
+    res: int | None = None
+    bits: int | None = None
+    backface: bool = False
+    layers: int = 1
+    translucent: bool = False
+
+
+def cast_views(scene, requests) -> list:
+    """The light views of ``requests`` (:class:`ViewRequest`), cast in one stage: one evaluation and
+    one replay, which walks the scene's arrays once for every light, fit, map size and depth format
+    (what differs between the views is in the stage's key; views of one size share a kernel)."""
+    owner, scene = scene, scene.casters  # the map holds what casts shadows (``casts_shadows``)
     shapes = scene.mi_scene.shapes_dr()
     alpha = bool(getattr(scene, "has_alpha", False))
-    table = scene.translucency() if translucent and getattr(scene, "has_translucent", False) else None
-    casts = [_prepare(scene, l, projection(l, scene, res, fit), int(bits or l.depth_bits), shapes)
-             for l, fit in zip(lights, fits)]
-    out = [None] * len(casts)
-    for key in dict.fromkeys(c.key for c in casts):
-        which = [i for i, c in enumerate(casts) if c.key == key]
-        group = [casts[i] for i in which]
+    table = scene.translucency() if getattr(scene, "has_translucent", False) else None
+    tables = [table if q.translucent else None for q in requests]
+    casts = [_prepare(scene, q.light, projection(q.light, scene, q.res, q.fit), int(q.bits or q.light.depth_bits),
+                      shapes) for q in requests]
 
-        def stage(*_inputs, group=group):  # the arrays it reads are the inputs; the rest is the key's
-            views = [_cast_view(scene, c.proj, c.consts, c.bits, c.t0, backface, c.own_ptr, alpha, table,
-                                c.clip_plane, layers) for c in group]
-            dr.eval(views)  # the light views are a stage boundary: one evaluation of every map
-            return views
+    def stage(*_inputs):  # the arrays it reads are the inputs; the rest is the key's
+        views = [_cast_view(scene, c.proj, c.consts, c.bits, c.t0, bool(q.backface), c.own_ptr, alpha, tb,
+                            c.clip_plane, int(q.layers)) for c, q, tb in zip(casts, requests, tables)]
+        dr.eval(views)  # the light views are a stage boundary: one evaluation of every map
+        return views
 
-        # the lights and their cameras are inputs (t0, consts, clip_plane, own panel): moved lights replay
-        full = key + (bool(backface), alpha, table is not None, int(layers), len(group))
-        views = replayed("light_view", full, stage, owner, scene.mi_scene, [c.consts.data for c in group],
-                         [c.t0 for c in group], [c.own_ptr for c in group], table, [c.clip_plane for c in group])
-        for i, c, (maps, near) in zip(which, group, views):
-            l = lights[i]
-            near = None if near is None else LightView(light=l, proj=c.proj, bits=c.bits, backface=backface, maps=near)
-            out[i] = LightView(light=l, proj=c.proj, bits=c.bits, backface=backface, maps=maps, translucent=near)
+    # the lights and their cameras are inputs (t0, consts, clip_plane, own panel): moved lights replay
+    key = tuple(c.key + (bool(q.backface), alpha, tb is not None, int(q.layers))
+                for c, q, tb in zip(casts, requests, tables))
+    views = replayed("light_view", key, stage, owner, scene.mi_scene, [c.consts.data for c in casts],
+                     [c.t0 for c in casts], [c.own_ptr for c in casts], table if any(t is not None for t in tables)
+                     else None, [c.clip_plane for c in casts])
+    out = []
+    for q, c, (maps, near) in zip(requests, casts, views):
+        near = None if near is None else LightView(light=q.light, proj=c.proj, bits=c.bits, backface=q.backface,
+                                                   maps=near)
+        out.append(LightView(light=q.light, proj=c.proj, bits=c.bits, backface=q.backface, maps=maps,
+                             translucent=near))
     return out
 
 

@@ -102,6 +102,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..errors import InputError
+from ..render.frame import ViewKey
 from ..render.lightview import face_rows, opaque_values
 from ..render.tiles import TiledView
 from .base import FromScene, LightResult, Param, Technique, needs_mitsuba_geometry, param_table_markdown, register
@@ -205,18 +206,21 @@ def map_settings(frame, light_name: str, values: dict) -> tuple[int, int]:
     return res, bits
 
 
-def view_for(frame, light_name: str, values: dict, translucent: bool = False):
+def view_for(frame, light_name: str, values: dict, translucent: bool = False, with_translucent: bool = False):
     """The (cached) LightView a shadow-map technique samples for ``light_name``; ``translucent``:
     the opaque casters' depth plus the translucent casters' colour and depth (in a scene with
-    translucent shapes; the plain view elsewhere)."""
-    res, bits = map_settings(frame, light_name, values)
-    # the frame's lights with the same map settings are cast together (one stage, one replay for all):
-    # the render asks for each of them next
-    names = [l.name for l in frame.lights if map_settings(frame, l.name, values) == (res, bits)]
-    views = frame.light_views_of(names, [None] * len(names), res=res, bits=bits,
-                                 backface=bool(values.get("backface", False)), layers=map_layers(values),
-                                 translucent=translucent)
-    return views[names.index(light_name)]
+    translucent shapes; the plain view elsewhere). Every light of the frame is cast with it, each
+    with its own map settings, in one stage (the render asks for each of them next), and with
+    ``with_translucent`` their translucent views too (a technique that reads both)."""
+    backface, layers = bool(values.get("backface", False)), map_layers(values)
+    own = ViewKey(light_name, *map_settings(frame, light_name, values), backface, None, layers, bool(translucent))
+    if frame.has_view(own):
+        return frame.views([own])[0]
+    flags = dict.fromkeys((bool(translucent),) + ((True,) if with_translucent else ()))
+    keys = [ViewKey(l.name, *map_settings(frame, l.name, values), backface, None, layers, flag)
+            for flag in flags for l in frame.lights]
+    views = frame.views(keys)
+    return views[[k.name for k in keys].index(light_name)]
 
 
 def map_layers(values: dict) -> int:

@@ -488,7 +488,7 @@ class SSSS(ShadowMapTechnique):
         for every light loses the caches, as ``Technique.render`` says), not waited for."""
         gb = frame.gbuffer
         coloured = frame.scene.has_translucent
-        view = view_for(frame, light.name, values)
+        view = view_for(frame, light.name, values, with_translucent=True)  # both views of every light: one stage
         opaque = view_for(frame, light.name, values, translucent=True)  # ``view`` itself without translucency
         rec = receiver(frame, view, ctx.bias)
         hard = dr.select(rec["active"], depth_test(opaque, rec, texel_index(rec["u"]), texel_index(rec["v"]),
