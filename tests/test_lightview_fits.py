@@ -230,3 +230,16 @@ def test_projection_helpers_per_face(frame):
     faces = np.arange(6).repeat(7)
     assert np.allclose(proj.ndc_depth(np.tile(z, 6), face=faces), np.tile(proj.ndc_depth(z), 6))
     assert np.allclose(proj.linear_depth(proj.ndc_depth(z)), z)
+
+
+def test_a_scene_fitted_camera_is_made_once_per_light(frame):
+    """The SceneSphere camera is kept with the scene's geometry: the same light gets the same object,
+    a moved light (same name) its own camera, the one computed afresh."""
+    from shadowlab.render import lightview
+    sc = frame.scene
+    bulb = sc.spec.light("bulb")
+    moved = dataclasses.replace(bulb, position=(bulb.position[0] + 0.5, *bulb.position[1:]))
+    first = projection(bulb, sc, 16)
+    assert projection(bulb, sc, 16) is first
+    assert projection(moved, sc, 16) == lightview._scene_sphere(moved, sc, 16) != first
+    assert projection(bulb, sc, 24) == lightview._scene_sphere(bulb, sc, 24) != first

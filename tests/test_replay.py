@@ -237,6 +237,32 @@ def test_a_scenes_lights_are_cast_in_one_stage(fresh, monkeypatch):
     assert not fresh._failed
 
 
+def test_views_of_every_size_and_translucency_are_cast_in_one_stage(fresh, monkeypatch):
+    """``FrameContext.views`` casts what it is asked for in one stage whatever the map sizes and
+    translucency (one recording, one replay per frame): each view has the bits ``light_view`` traces
+    for it alone, and a view asked for again is not cast again."""
+    from shadowlab.render.frame import ViewKey, make_frame
+    from shadowlab.render.lightview import light_view
+    from shadowlab.scene import load
+    sc = load("many_lights", resolution=(32, 18))
+    lights = sc.spec.lights[:3]
+    asks = [(l, res, tr) for l, res in zip(lights, (16, 24, 32)) for tr in (False, True)]
+    want = [_traced(monkeypatch, lambda: light_view(sc, l, res=res, translucent=tr)) for l, res, tr in asks]
+    for _ in range(3):                  # traced, recorded, replayed
+        frame = make_frame(sc, u_strata=1)
+        casts = []
+        monkeypatch.setattr(frame, "cast", lambda reqs, f=frame, cast=frame.cast: casts.append(len(reqs)) or cast(reqs))
+        keys = [ViewKey(l.name, res, None, False, None, 1, tr) for l, res, tr in asks]
+        got = frame.views(keys)
+        again = frame.views(keys[::-1])
+        assert casts == [len(asks)]
+        assert all(_equal(_arrays(g), _arrays(w)) for g, w in zip(got, want))
+        assert all(a is g for a, g in zip(again[::-1], got))
+    views = [k for k in fresh._stages if k[0] == "light_view"]
+    assert len(views) == 1 and fresh._stages[views[0]].frozen.n_recordings == 1
+    assert not fresh._failed
+
+
 def test_lights_cast_together_each_skip_their_own_panel(fresh, monkeypatch):
     """Two panel lights whose panels cast shadows, cast in one stage: each map skips its own panel and
     sees the other's, as the map light_view traces for that light alone."""
