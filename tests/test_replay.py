@@ -313,18 +313,21 @@ def test_replayed_ssss_blurs_have_the_traced_bits(fresh, monkeypatch, plane):
 
 
 def test_tree_rounds_replay_across_trees_of_one_size(fresh):
-    """On a GPU the build's rounds are recorded once per tree size and replayed by every later round and
-    build, trees of other lights over the same triangles included (on the CPU they are traced: a replay
-    copies the arrays it writes); each tree equals the numpy reference's."""
+    """On a GPU the build's rounds (ROUNDS_PER_READ of them a stage) are recorded once per tree size and
+    replayed by every later stage and build, trees of other lights over the same triangles included
+    (on the CPU they are traced: a replay copies the arrays it writes); each tree equals the numpy
+    reference's, in its rounds too (a stage's rounds past the last pending triangle are not counted)."""
     from conftest import CUDA
     from shadowlab.render import replay
-    from shadowlab.render.top_tree import _BUILDS, build_top_tree, build_top_tree_numpy
+    from shadowlab.render.top_tree import _BUILDS, ROUNDS_PER_READ, build_top_tree, build_top_tree_numpy
     V = np.random.default_rng(4).uniform(-1, 1, (60, 3, 3))
     sizes = set()
     for k, light in enumerate(([0.2, 3.0, 0.1, 1.0], [-0.5, 2.5, 0.4, 1.0], [0.3, -1.0, 0.2, 0.0])):
         a = build_top_tree_numpy(V, np.array(light))
         b = build_top_tree(V, np.array(light))
         assert b.rounds > 3 and np.array_equal(a.child, b.child) and np.array_equal(a.level, b.level), k
+        assert (b.rounds, b.dropped, b.nodes) == (a.rounds, a.dropped, a.nodes), k
         sizes.add(4 * (len(V) - b.degenerate))
-    assert len(sizes) == 1 and replay.recordings("top_tree_round", (sizes.pop(),), _BUILDS) == (1 if CUDA else 0)
+    assert len(sizes) == 1
+    assert replay.recordings("top_tree_round", (sizes.pop(), ROUNDS_PER_READ), _BUILDS) == (1 if CUDA else 0)
     assert not fresh._failed

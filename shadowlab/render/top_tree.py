@@ -25,9 +25,10 @@ once, with no loop over triangles or nodes. Where several triangles reach the sa
 the same round, the first in insertion order takes it and the others descend into its subtree in
 the next round. Every triangle that reaches a link reaches it in the round equal to the link's
 depth, so the tree is the one sequential insertion in that order builds. :func:`build_top_tree`
-runs the rounds as Dr.Jit kernels on the device (a frame's tree never passes through the host; one
-wait per round, for the count of triangles left); :func:`build_top_tree_numpy` runs them in numpy
-and is the reference the device build is tested against, node for node.
+runs the rounds as Dr.Jit kernels on the device (a frame's tree never passes through the host; the
+count of triangles left is read once per :data:`ROUNDS_PER_READ` rounds on a GPU);
+:func:`build_top_tree_numpy` runs them in numpy and is the reference the device build is tested
+against, node for node.
 
 Insertion order (``order``):
 
@@ -497,9 +498,10 @@ def _hang(tree, planes, tri, base, parent_depth, active):
 
 def _round(tree, planes, win, links, lane, tri, Vp, node, alive, used, eps):
     """One round of the build: every pending triangle (``alive``) steps down one link of ``tree``;
-    the first in insertion order (the lowest ``lane``) to reach an empty link takes it. Returns the
-    triangles' nodes and pending flags after the round and (dropped, subtrees hung, triangles
-    left) as a UInt32 array of 3, on the device."""
+    the first in insertion order (the lowest ``lane``) to reach an empty link takes it; ``used``:
+    the nodes in use (width 1). Returns the triangles' nodes and pending flags after the round and
+    (dropped, subtrees hung, triangles left) as a UInt32 array of 3, on the device. A round with
+    nothing pending changes nothing."""
     I32, U32, F = mi.Int32, mi.UInt32, mi.Float64
     Pn, is_cap, child, depth, _ = tree
     counts = dr.zeros(U32, 3)
@@ -539,6 +541,28 @@ def _round(tree, planes, win, links, lane, tri, Vp, node, alive, used, eps):
     return node, alive, counts
 
 
+def _rounds(k: int, tree, planes, win, links, lane, tri, Vp, node, alive, totals, eps):
+    """``k`` rounds (:func:`_round`) in a row with nothing read on the host: ``totals`` (UInt32, 4)
+    carries (dropped, nodes in use, rounds with a triangle pending, triangles left) from round to
+    round on the device. Returns the nodes, pending flags and totals after the ``k`` rounds."""
+    U32 = mi.UInt32
+    for _ in range(k):
+        busy = dr.gather(U32, totals, U32(3)) > 0
+        node, alive, counts = _round(tree, planes, win, links, lane, tri, Vp, node, alive,
+                                     mi.Int32(dr.gather(U32, totals, U32(1))), eps)
+        c = [dr.gather(U32, counts, U32(j)) for j in range(3)]
+        totals = dr.ravel(mi.Vector4u(dr.gather(U32, totals, U32(0)) + c[0],
+                                      dr.gather(U32, totals, U32(1)) + 4 * c[1],
+                                      dr.gather(U32, totals, U32(2)) + dr.select(busy, U32(1), U32(0)), c[2]))
+        dr.eval(totals)
+    return node, alive, totals
+
+
+#: rounds run between two reads of the triangles left: on a GPU, one replayed stage (a round with
+#: nothing pending launches its kernels but changes nothing); on the CPU rounds are traced, one by one
+ROUNDS_PER_READ = 8
+
+
 class _Builds:
     """The owner of the build rounds' recordings (:func:`~shadowlab.render.replay.replayed`): they read
     no Mitsuba scene, only the tree's own arrays, so they live with the process (least recently used
@@ -558,8 +582,9 @@ def build_top_tree(V, light, *, origin=None, order="random") -> TopTree:
     once: a triangle descends one link per round; the first in insertion order to reach an empty
     link takes it (a ``Min`` scatter-reduction over the links), and the links taken in a round get
     their subtrees in the order of their index (a prefix sum over the links), as numpy's sorted
-    ``unique`` gives them, so the tree is the reference's node for node. One wait per round (how
-    many triangles are left) and one at the start (which triangles are degenerate)."""
+    ``unique`` gives them, so the tree is the reference's node for node. One wait per
+    :data:`ROUNDS_PER_READ` rounds on a GPU, per round on the CPU (how many triangles are left), and
+    one at the start (which triangles are degenerate)."""
     t0 = time.perf_counter()
     tris = V if isinstance(V, Triangles) else upload_triangles(V)
     light = np.asarray(light, np.float64)
@@ -612,22 +637,35 @@ def build_top_tree(V, light, *, origin=None, order="random") -> TopTree:
         links = dr.arange(I32, 3 * cap_n)
         eps_dr = dr.opaque(F, eps)
         dr.eval(planes, tri, Vp, node, alive, win, links, tree)
-        left = M
-        # on a GPU each round is one recording per tree size, replayed for the other rounds and frames (the
-        # tree's arrays are its only inputs: a replay walks no Mitsuba scene), which spares the host the
-        # tracing that costs more there than the round's kernels; on the CPU a replay copies the arrays it
-        # writes (Dr.Jit protects a frozen function's inputs) and the traced round is the faster
-        rnd = (lambda *a: replayed("top_tree_round", (cap_n,), _round, _BUILDS, *a)) \
-            if mi.variant().startswith("cuda") else _round
-        while left:
-            rounds += 1
-            node, alive, counts = rnd(tree, planes, win, links, lane, tri, Vp, node, alive, dr.opaque(I32, used),
-                                      eps_dr)
-            d, new, left = (int(x) for x in counts.numpy())
-            if rounds > cap_n:   # each round takes every pending triangle one level down a tree of cap_n nodes
-                raise RuntimeError(f"TOP tree build: {left} triangles still pending after {rounds} rounds")
-            dropped += d
-            used += 4 * new
+        # on a GPU ROUNDS_PER_READ rounds are one recording per tree size, replayed for the later rounds and
+        # frames (the tree's arrays are its only inputs: a replay walks no Mitsuba scene), which spares the
+        # host the tracing that costs more there than the rounds' kernels, and the host reads how many
+        # triangles are left once per recording; on the CPU a replay copies the arrays it writes (Dr.Jit
+        # protects a frozen function's inputs): the traced round is the faster, its counts read after each
+        if mi.variant().startswith("cuda"):
+            k = ROUNDS_PER_READ
+            totals = dr.opaque(U32, 0, 4) + U32(0, 4, 0, M)   # dropped, nodes in use, rounds, triangles left
+            dr.eval(totals)
+            left, run = M, 0
+            while left:
+                node, alive, totals = replayed("top_tree_round", (cap_n, k), _rounds, _BUILDS, k, tree, planes,
+                                               win, links, lane, tri, Vp, node, alive, totals, eps_dr)
+                run += k
+                if run > cap_n + k:   # each round takes every pending triangle one level down a tree of cap_n nodes
+                    raise RuntimeError(f"TOP tree build: {left} triangles still pending after {run} rounds")
+                left = int(dr.gather(U32, totals, U32(3)).numpy()[0])
+            dropped, used, rounds, _ = (int(x) for x in totals.numpy())
+        else:
+            left = M
+            while left:
+                rounds += 1
+                node, alive, counts = _round(tree, planes, win, links, lane, tri, Vp, node, alive,
+                                             dr.opaque(I32, used), eps_dr)
+                d, new, left = (int(x) for x in counts.numpy())
+                if rounds > cap_n:
+                    raise RuntimeError(f"TOP tree build: {left} triangles still pending after {rounds} rounds")
+                dropped += d
+                used += 4 * new
     k = dr.arange(I32, used)
     Pn = [dr.gather(F, p, k) for p in Pn]
     child = [dr.gather(I32, child, k * 3 + j) for j in range(3)]
