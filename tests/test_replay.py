@@ -328,6 +328,9 @@ def test_tree_rounds_replay_across_trees_of_one_size(fresh):
         assert b.rounds > 3 and np.array_equal(a.child, b.child) and np.array_equal(a.level, b.level), k
         assert (b.rounds, b.dropped, b.nodes) == (a.rounds, a.dropped, a.nodes), k
         sizes.add(4 * (len(V) - b.degenerate))
+    for _ in range(3):                  # the subtrees' nearest distances: traced, recorded, replayed
+        b = build_top_tree(V, np.array(light))
+        assert np.allclose(a.near, b.near, rtol=1e-12, atol=1e-12)
     assert len(sizes) == 1
     assert replay.recordings("top_tree_round", (sizes.pop(), ROUNDS_PER_READ), _BUILDS) == (1 if CUDA else 0)
     assert not fresh._failed

@@ -558,6 +558,21 @@ def _rounds(k: int, tree, planes, win, links, lane, tri, Vp, node, alive, totals
     return node, alive, totals
 
 
+def _subtree_near(top: int, near, depth, child):
+    """Each node's ``near`` lowered to the least over its subtree: level by level from the deepest
+    (``top``) up, one kernel a level."""
+    F = mi.Float64
+    for lv in range(top, 0, -1):
+        here = depth == lv
+        m = near
+        for j in range(3):
+            has = here & (child[j] >= 0)
+            m = dr.select(has, dr.minimum(m, dr.gather(F, near, child[j], has)), m)
+        near = dr.select(here, m, near)
+        dr.eval(near)
+    return near
+
+
 #: rounds run between two reads of the triangles left: on a GPU, one replayed stage (a round with
 #: nothing pending launches its kernels but changes nothing); on the CPU rounds are traced, one by one
 ROUNDS_PER_READ = 8
@@ -673,14 +688,10 @@ def build_top_tree(V, light, *, origin=None, order="random") -> TopTree:
     near = dr.gather(F, _device_near(v, lo), owner)
     dr.eval(Pn, child, is_cap, depth, near)
     top = _read(dr.max(depth))[0] if used else 0
-    for lv in range(top, 0, -1):
-        here = depth == lv
-        m = near
-        for j in range(3):
-            has = here & (child[j] >= 0)
-            m = dr.select(has, dr.minimum(m, dr.gather(F, near, child[j], has)), m)
-        near = dr.select(here, m, near)
-        dr.eval(near)
+    if top and mi.variant().startswith("cuda"):  # one recording per tree shape: the levels' tracing is the host's
+        near = replayed("top_tree_near", (used, top), _subtree_near, _BUILDS, top, near, depth, child)
+    elif top:
+        near = _subtree_near(top, near, depth, child)
     extent = float(dr.max(dr.abs(Pn[3]))[0]) if used else 0.0
     return TopTree(
         device={"planes": Pn, "cap": is_cap, "child": child, "level": U32(depth), "near": near},
