@@ -45,7 +45,7 @@ import datetime
 import math
 import os
 import time
-import traceback
+import sys
 from pathlib import Path
 
 import drjit as dr
@@ -114,21 +114,39 @@ class TimedFrame(FrameContext):
 def first_sync(fn) -> str | None:
     """Where ``fn`` first waits for the device (``JitFlag.ForbidSynchronization`` raises there): the
     innermost line of shadowlab outside the bench, as ``module.py:LINE (function)`` (``<lambda>``
-    written ``lambda``, so that Markdown shows it); None if it never does."""
+    written ``lambda``, so that Markdown shows it); None if it never does.
+
+    The line is taken from the frames the error passes through while it propagates (a trace
+    function's ``exception`` events), not from its traceback: walking the traceback of an error
+    Dr.Jit raised inside a compress crashed the interpreter (a freed frame in it)."""
+    seen = []
+
+    def local(frame, event, arg):
+        if event == "exception":
+            seen.append((arg[1], frame.f_code.co_filename, frame.f_lineno, frame.f_code.co_name))
+        return local
+
+    def enter(frame, event, arg):
+        name = frame.f_code.co_filename
+        return local if name.startswith(_PACKAGE) and not name.startswith(_BENCH) else None
+
     dr.sync_thread()
     dr.set_flag(dr.JitFlag.ForbidSynchronization, True)
+    previous = sys.gettrace()
+    sys.settrace(enter)
     try:
         fn()
     except RuntimeError as e:
+        sys.settrace(previous)
         if "synchroniz" not in str(e):
             raise
-        ours = [f for f in traceback.extract_tb(e.__traceback__)
-                if f.filename.startswith(_PACKAGE) and not f.filename.startswith(_BENCH)]
+        ours = [s for s in seen if s[0] is e]
         if not ours:
             return "outside shadowlab"
-        f = ours[-1]
-        return f"{os.path.relpath(f.filename, os.path.dirname(_PACKAGE))}:{f.lineno} ({f.name.strip('<>')})"
+        _, filename, lineno, name = ours[0]
+        return f"{os.path.relpath(filename, os.path.dirname(_PACKAGE))}:{lineno} ({name.strip('<>')})"
     finally:
+        sys.settrace(previous)
         dr.set_flag(dr.JitFlag.ForbidSynchronization, False)
     return None
 
