@@ -226,8 +226,12 @@ def measure(sc, name: str, *, repeats: int = REPEATS, raw_cache: dict | None = N
     p = t.resolve({})
     for _ in range(WARMUP_FRAMES):                 # compiles every kernel, records the frame's stages, replays
         new_frame(sc, t, p)
-    runs = sorted((new_frame(sc, t, p) for _ in range(NEW_FRAMES)), key=lambda run: run[2]["total_s"])
-    frame, r, split = runs[len(runs) // 2]
+    splits, frame, r = [], None, None
+    for _ in range(NEW_FRAMES):
+        frame = r = None  # the last frame's views freed before the next is cast (kept, they slowed its casts 2x)
+        frame, r, split = new_frame(sc, t, p)
+        splits.append(split)
+    split = sorted(splits, key=lambda s: s["total_s"])[len(splits) // 2]
     warm = warm_frame(frame, t, p, repeats)
     sync_new = first_sync(lambda: render_evaluated(t, make_frame(sc), p))
     sync_warm = first_sync(lambda: render_evaluated(t, frame, p))
