@@ -133,3 +133,16 @@ def test_goals_take_the_worst_technique_and_count_those_within():
     assert (round(new[1], 9), new[2], new[3]) == (200.0, 2, 4) and (over[1], over[3]) == (40.0, 4)
     assert (round(gbuffer[1], 9), gbuffer[2], gbuffer[3]) == (5.0, 2, 3)          # the median; 4 and 5 ms within
     assert many == (50.0, None, 0, 0)                                            # no many_lights in this run
+
+
+def test_the_replay_floor_is_a_replayed_stage_over_the_scene(bench, mitsuba_backend):
+    """Each scene's floor: a stage replayed (recorded once) with the scene's Mitsuba scene as its
+    input, over all of its shapes; shown in the scene's section."""
+    from shadowlab.pipeline import load_scene
+    from shadowlab.render import replay
+    floor = bench["rec"]["results"]["scenes"]["contact"]["replay_floor"]
+    sc = load_scene("contact", (64, 36))
+    assert floor["shapes"] == len(sc.mi_scene.shapes()) and floor["ms"] > 0
+    assert f"the scene's {floor['shapes']} shapes" in bench["md"]
+    frames.replay_floor(sc, repeats=2)
+    assert replay.recordings("replay_floor", (), sc) == 1

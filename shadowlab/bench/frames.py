@@ -35,7 +35,10 @@ pass included) and [Tamás 2015, §7] its milliseconds. For every technique that
   tap per valid point and light (the techniques do not report their filters' tap counts, so a k-tap
   filter's limit is lower than its real work), as Mitsuba ``ray_test`` from the G-buffer's points in
   one wavefront (:func:`shadowlab.bench.rays.raw_ray_test`), and the new frame's time over it. SDF
-  scenes have no Mitsuba geometry to cast against: no limit there.
+  scenes have no Mitsuba geometry to cast against: no limit there;
+* **replay floor**, per scene: a replayed stage that does no work but takes the scene as its input
+  (:func:`replay_floor`), what each of a frame's replayed stages pays before its kernels (Dr.Jit
+  walks the scene's variables at every call; the more shapes, the longer).
 """
 
 from __future__ import annotations
@@ -44,11 +47,12 @@ import dataclasses
 import datetime
 import math
 import os
-import time
 import sys
+import time
 from pathlib import Path
 
 import drjit as dr
+import mitsuba as mi
 
 from .. import backend
 from ..errors import InputError
@@ -56,6 +60,7 @@ from ..io.jsonio import write_json_atomic
 from ..io.png import write_bytes_atomic
 from ..pipeline import check_memory, load_scene
 from ..render.frame import FrameContext, make_frame
+from ..render.replay import replayed
 from ..techniques import base
 from .rays import raw_ray_test
 from .timing import history, kernel_summary, machine_text, render_evaluated, timed
@@ -245,6 +250,22 @@ def measure(sc, name: str, *, repeats: int = REPEATS, raw_cache: dict | None = N
             "new_over_limit": None if not limit_s else split["total_s"] / limit_s}
 
 
+def replay_floor(sc, repeats: int = REPEATS) -> dict | None:
+    """What every replayed stage of the scene pays before its kernels: a stage that does no work
+    (one width-1 addition) but takes the scene's Mitsuba scene as its input, so that Dr.Jit walks
+    the scene's variables at each call (:mod:`shadowlab.render.replay`), timed like a frame's stages
+    (median wall ms of ``repeats`` replays). None on an SDF scene (its G-buffer is not replayed)."""
+    if sc.kind != "mitsuba":
+        return None
+    x = dr.opaque(mi.Float, 1.0, 1)
+
+    def call():
+        return dr.eval(replayed("replay_floor", (), lambda _scene, y: y + 1.0, sc, sc.mi_scene, x))
+
+    _, ts = timed(call, repeats, warmup=3)   # traced, recorded, replayed once
+    return {"shapes": len(sc.mi_scene.shapes()), "ms": 1e3 * sorted(ts)[len(ts) // 2]}
+
+
 def techniques_on(spec, only=None) -> list[str]:
     """The techniques of ``only`` (None: every registered one, real engines left out) that apply to
     ``spec`` and can run here."""
@@ -258,7 +279,8 @@ def bench(size=SIZE, plan=PLAN, repeats: int = REPEATS, log=None) -> dict:
     for scene, only in plan:
         sc = load_scene(scene, tuple(size))
         cache: dict = {}
-        out[scene] = {"lights": len(sc.spec.lights), "kind": sc.kind, "techniques": {}}
+        out[scene] = {"lights": len(sc.spec.lights), "kind": sc.kind, "replay_floor": replay_floor(sc, repeats),
+                      "techniques": {}}
         for n in techniques_on(sc.spec, only):
             if log:
                 log(f"frames: {scene} {n}")
@@ -337,7 +359,13 @@ def markdown(res: dict) -> str:
                      f"{f'{ok} of {n}' if n else '–'} |")
     lines.append("")
     for scene, d in res["scenes"].items():
-        lines += [f"## `{scene}` ({d['lights']} light{'s' if d['lights'] != 1 else ''})", "",
+        lines += [f"## `{scene}` ({d['lights']} light{'s' if d['lights'] != 1 else ''})", ""]
+        floor = d.get("replay_floor")
+        if floor:
+            lines += [f"Replay floor: {floor['ms']:.2f} ms a replayed stage (a stage that does no work but walks "
+                      f"the scene's {floor['shapes']} shapes' variables, as the G-buffer's, each light-view cast's "
+                      "and each tile wavefront's replays do).", ""]
+        lines += [
                   "| technique | new frame | G-buffer | light views | technique | host | warm | kernels new / warm | "
                   "copies new / warm | first sync, new frame | first sync, warm | rays (texels + taps) | limit | "
                   "new / limit |",
