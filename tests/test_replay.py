@@ -251,7 +251,7 @@ def test_views_of_every_size_and_translucency_are_cast_in_one_stage(fresh, monke
     for _ in range(3):                  # traced, recorded, replayed
         frame = make_frame(sc, u_strata=1)
         casts = []
-        monkeypatch.setattr(frame, "cast", lambda reqs, f=frame, cast=frame.cast: casts.append(len(reqs)) or cast(reqs))
+        monkeypatch.setattr(frame, "cast", lambda reqs, cast=frame.cast: casts.append(len(reqs)) or cast(reqs))
         keys = [ViewKey(l.name, res, None, False, None, 1, tr) for l, res, tr in asks]
         got = frame.views(keys)
         again = frame.views(keys[::-1])

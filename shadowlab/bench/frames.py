@@ -133,7 +133,10 @@ def first_sync(fn) -> str | None:
 
     def enter(frame, event, arg):
         name = frame.f_code.co_filename
-        return local if name.startswith(_PACKAGE) and not name.startswith(_BENCH) else None
+        if not name.startswith(_PACKAGE) or name.startswith(_BENCH):
+            return None
+        frame.f_trace_lines = False  # only its exception events are wanted, not one call per line
+        return local
 
     dr.sync_thread()
     dr.set_flag(dr.JitFlag.ForbidSynchronization, True)
@@ -231,7 +234,7 @@ def measure(sc, name: str, *, repeats: int = REPEATS, raw_cache: dict | None = N
     p = t.resolve({})
     for _ in range(WARMUP_FRAMES):                 # compiles every kernel, records the frame's stages, replays
         new_frame(sc, t, p)
-    splits, frame, r = [], None, None
+    splits = []
     for _ in range(NEW_FRAMES):
         frame = r = None  # the last frame's views freed before the next is cast (kept, they slowed its casts 2x)
         frame, r, split = new_frame(sc, t, p)
