@@ -27,15 +27,24 @@ def test_the_record_has_the_part_machine_and_a_row_per_technique(bench):
     assert rec["part"] == "frames" and rec["machine"]["variant"] and rec["machine"]["cores"] >= 1
     goals, table = [b for b in rec["blocks"] if b["type"] == "table"][:2]
     assert [r[0] for r in goals["rows"]] == [g[0] for g in frames.GOALS]
-    for col in ("new frame", "G-buffer", "light views", "technique", "host", "warm", "kernels new / warm",
-                "first sync, new frame", "rays (texels + taps)", "limit"):
+    for col in ("new frame", "G-buffer", "light views", "technique", "host", "split total", "warm",
+                "kernels new / warm", "first sync, new frame", "rays (texels + taps)", "limit"):
         assert col in table["columns"], col
     assert [r[0] for r in table["rows"]] == ["hard", "pcf"]
     res = rec["results"]
     assert res["size"] == [64, 36] and list(res["scenes"]) == ["contact"]
     for r in res["scenes"]["contact"]["techniques"].values():
-        for k in ("new", "warm", "first_sync", "texels", "taps", "rays", "raw", "limit_s", "new_over_limit"):
+        for k in ("new_s", "new_runs_s", "new", "warm", "first_sync", "texels", "taps", "rays", "raw", "limit_s",
+                  "new_over_limit"):
             assert k in r, k
+
+
+def test_the_new_frame_is_the_median_plain_frame_and_sets_the_ratio(bench):
+    """The new frame (the goals' figure) is the median of the plain frames; new / limit is over it."""
+    for name, r in bench["rec"]["results"]["scenes"]["contact"]["techniques"].items():
+        runs = sorted(r["new_runs_s"])
+        assert len(runs) == frames.NEW_FRAMES and r["new_s"] == runs[len(runs) // 2], name
+        assert r["new_s"] > 0 and r["new_over_limit"] == pytest.approx(r["new_s"] / r["limit_s"], rel=1e-12), name
 
 
 def test_the_split_adds_up_to_the_new_frame(bench):
@@ -117,7 +126,8 @@ def test_frames_is_a_part_and_size_belongs_to_it(tmp_path, capsys):
 
 def test_goals_take_the_worst_technique_and_count_those_within():
     def tech(total, gbuffer, over, views=0.001):
-        return {"new": {"total_s": total, "gbuffer_s": gbuffer, "light_views_s": views}, "new_over_limit": over,
+        return {"new_s": total, "new": {"total_s": 2 * total, "gbuffer_s": gbuffer, "light_views_s": views},
+                "new_over_limit": over,
                 "limit_s": 0.001}
     res = {"scenes": {"contact": {"techniques": {"a": tech(0.008, 0.004, 3.0), "b": tech(0.012, 0.006, 6.0),
                                                  "c": tech(0.009, 0.005, 4.0), "sdf": tech(0.5, 0.004, 90.0, 0.0)}}}}

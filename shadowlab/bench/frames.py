@@ -10,16 +10,22 @@ pass included) and [Tamás 2015, §7] its milliseconds. For every technique that
 * **new frame**: ``make_frame`` (G-buffer and unshadowed light) on a fresh frame, then the
   technique's render on it, every light view cast anew, after :data:`WARMUP_FRAMES` untimed new
   frames (the G-buffer and the light views are replayed stages, :mod:`shadowlab.render.replay`: the
-  first frame traces them, the second records them, the third is the first replay); of
-  :data:`NEW_FRAMES` timed new frames, the one of median wall time. Split into
-  *G-buffer* (``make_frame``), *light views* (the wall time of the casts, ``FrameContext.cast``,
-  and of the calls to ``top_tree``, each between ``dr.sync_thread()`` calls, the views evaluated),
-  and *technique* (the render's wall time less its light views). *Host* is the part of the new
-  frame's wall time in which no kernel ran: wall time minus the kernels' execution times from
-  Dr.Jit's kernel history (``execution_time`` of every entry: JIT kernels, reductions, copies,
+  first frame traces them, the second records them, the third is the first replay): the median
+  wall time of :data:`NEW_FRAMES` frames run as a user's run runs them (:func:`plain_frame`: no
+  kernel history, no wait inside the frame). This is the figure of the goals and of new / limit;
+* **split** of a new frame, from :data:`NEW_FRAMES` more new frames run in turn with the plain
+  ones, instrumented (:func:`new_frame`; the one of median wall time): *G-buffer* (``make_frame``),
+  *light views* (the wall time of the casts, ``FrameContext.cast``, and of the calls to
+  ``top_tree``, each between ``dr.sync_thread()`` calls, the views evaluated) and *technique* (the
+  render's wall time less its light views), with Dr.Jit's kernel history on. *Host* is the part
+  of that frame's wall time in which no kernel ran: wall time minus the kernels' execution times
+  from the kernel history (``execution_time`` of every entry: JIT kernels, reductions, copies,
   memsets), i.e. tracing, Python, numpy and waiting on readbacks. It overlaps the other three (it
-  is a share of them, not a fourth addend). Virtual maps cast their tiles inside the technique at
-  every render, without a cache: there the shadow pass is in *technique*, and warm ≈ new;
+  is a share of them, not a fourth addend). The waits between the parts stop the host from
+  tracing one part while the device runs the last, and the history costs a little per kernel, so
+  the split's total (*split total*) exceeds the new frame, most for frames of many kernels.
+  Virtual maps cast their tiles inside the technique at every render, without a cache: there the
+  shadow pass is in *technique*, and warm ≈ new;
 * **warm**: the render again on the same frame, its light views cached (median of warm runs);
 * **kernels and transfers** per frame, from the kernel history of the timed new frame and of one
   more warm render: JIT kernels launched, other entries (reductions, memsets, copies), and
@@ -198,6 +204,18 @@ def new_frame(sc, technique, params) -> tuple:
     return tf, r, split
 
 
+def plain_frame(sc, technique, params) -> float:
+    """Seconds of one new frame as a user's run pays it: ``make_frame`` and the render, evaluated,
+    between two ``dr.sync_thread()`` calls, with no kernel history and no wait in between (the host
+    traces the next stage while the device runs the last; :func:`new_frame`'s split waits after
+    each part and logs every kernel, which costs more the more kernels a frame launches)."""
+    dr.sync_thread()
+    t0 = time.perf_counter()
+    render_evaluated(technique, make_frame(sc), params)
+    dr.sync_thread()
+    return time.perf_counter() - t0
+
+
 def warm_frame(frame, technique, params, repeats: int) -> dict:
     """Median warm render (light views cached) and one more render's kernels."""
     _, ts = timed(lambda: render_evaluated(technique, frame, params), repeats, warmup=1)
@@ -234,12 +252,14 @@ def measure(sc, name: str, *, repeats: int = REPEATS, raw_cache: dict | None = N
     p = t.resolve({})
     for _ in range(WARMUP_FRAMES):                 # compiles every kernel, records the frame's stages, replays
         new_frame(sc, t, p)
-    splits = []
+    splits, walls = [], []
     for _ in range(NEW_FRAMES):
         frame = r = None  # the last frame's views freed before the next is cast (kept, they slowed its casts 2x)
+        walls.append(plain_frame(sc, t, p))
         frame, r, split = new_frame(sc, t, p)
         splits.append(split)
     split = sorted(splits, key=lambda s: s["total_s"])[len(splits) // 2]
+    new_s = sorted(walls)[len(walls) // 2]
     warm = warm_frame(frame, t, p, repeats)
     sync_new = first_sync(lambda: render_evaluated(t, make_frame(sc), p))
     sync_warm = first_sync(lambda: render_evaluated(t, frame, p))
@@ -248,9 +268,10 @@ def measure(sc, name: str, *, repeats: int = REPEATS, raw_cache: dict | None = N
     taps = points * len(frame.lights)
     raw = raw_limit(frame, texels + taps, frame.lights[0].name, {} if raw_cache is None else raw_cache)
     limit_s = None if raw is None else raw["time_s"] * (texels + taps) / raw["rays"]
-    return {"new": split, "warm": warm, "first_sync": {"new": sync_new, "warm": sync_warm},
+    return {"new_s": new_s, "new_runs_s": walls, "new": split, "warm": warm,
+            "first_sync": {"new": sync_new, "warm": sync_warm},
             "texels": texels, "taps": taps, "rays": texels + taps, "raw": raw, "limit_s": limit_s,
-            "new_over_limit": None if not limit_s else split["total_s"] / limit_s}
+            "new_over_limit": None if not limit_s else new_s / limit_s}
 
 
 def replay_floor(sc, repeats: int = REPEATS) -> dict | None:
@@ -320,7 +341,7 @@ def goal_rows(res: dict) -> list:
         techs = {(sc, n): r for sc in scenes for n, r in res["scenes"].get(sc, {}).get("techniques", {}).items()
                  if r["new"]["light_views_s"] > 0 or r.get("texels", 0) > 0}   # virtual maps cast in the technique
         if measure == "new_max_ms":
-            vals = {n: 1e3 * r["new"]["total_s"] for n, r in techs.items()}
+            vals = {n: 1e3 * r["new_s"] for n, r in techs.items()}
         elif measure == "over_limit_max":
             vals = {n: r["new_over_limit"] for n, r in techs.items() if r["limit_s"]}
         else:
@@ -342,10 +363,13 @@ def markdown(res: dict) -> str:
              f"New frame: `make_frame` and the render on a fresh frame, every light view cast anew (ms), after "
              f"{WARMUP_FRAMES} untimed new frames (the first compiles the kernels, the second records the G-buffer "
              "and light-view stages, the third replays them first; the timed frames are as every later frame of "
-             f"a run), the median of {NEW_FRAMES} by wall time, split into "
-             "G-buffer, light views (the casts of maps and TOP trees, each synchronised) and technique (the rest "
-             "of the render); host: the new frame's wall time in which no kernel ran (wall minus the kernels' "
-             "execution times from Dr.Jit's kernel history; a share of the other three, not an addend). Warm: the "
+             f"a run), the median wall time of {NEW_FRAMES}, run as a user's run runs them (no kernel history, no "
+             f"wait inside the frame). Split: {NEW_FRAMES} more new frames, run in turn with those, instrumented "
+             "(the one of median wall time): G-buffer, light views (the casts of maps and TOP trees, each "
+             "synchronised) and technique (the rest of the render), with Dr.Jit's kernel history on; host: that "
+             "frame's wall time in which no kernel ran (wall minus the kernels' execution times from the kernel "
+             "history; a share of the other three, not an addend); split total: their sum, above the new frame by "
+             "what the waits between the parts and the history cost (most for frames of many kernels). Warm: the "
              "render with the light views cached (median). Kernels: JIT kernels + other history entries "
              "(reductions, memsets, copies); copies: `Memcpy` entries (on LLVM, one-element reads; numpy readbacks "
              "leave none, and CUDA logs no copies). First sync: where a frame first waits for the device "
@@ -369,17 +393,17 @@ def markdown(res: dict) -> str:
                       f"the scene's {floor['shapes']} shapes' variables, as the G-buffer's, each light-view cast's "
                       "and each tile wavefront's replays do).", ""]
         lines += [
-                  "| technique | new frame | G-buffer | light views | technique | host | warm | kernels new / warm | "
-                  "copies new / warm | first sync, new frame | first sync, warm | rays (texels + taps) | limit | "
-                  "new / limit |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "| technique | new frame | G-buffer | light views | technique | host | split total | warm | "
+                  "kernels new / warm | copies new / warm | first sync, new frame | first sync, warm | "
+                  "rays (texels + taps) | limit | new / limit |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for n, r in d["techniques"].items():
             nw, wm = r["new"], r["warm"]
             lim = r["limit_s"]
             over = "–" if lim is None else f"{r['new_over_limit']:.0f}×"
             lines.append(
-                f"| {n} | {_ms(nw['total_s'])} | {_ms(nw['gbuffer_s'])} | {_ms(nw['light_views_s'])} | "
-                f"{_ms(nw['technique_s'])} | {_ms(nw['host_s'])} | {_ms(wm['time_s'])} | "
+                f"| {n} | {_ms(r['new_s'])} | {_ms(nw['gbuffer_s'])} | {_ms(nw['light_views_s'])} | "
+                f"{_ms(nw['technique_s'])} | {_ms(nw['host_s'])} | {_ms(nw['total_s'])} | {_ms(wm['time_s'])} | "
                 f"{_kern(nw['kernels'])} / {_kern(wm['kernels'])} | {nw['kernels']['memcpy']} / "
                 f"{wm['kernels']['memcpy']} | {r['first_sync']['new'] or 'none'} | "
                 f"{r['first_sync']['warm'] or 'none'} | "
