@@ -481,19 +481,37 @@ def _read(*values) -> list:
     return [int(x) for x in dr.concat([mi.Float64(x) for x in values]).numpy()]
 
 
-def _hang(tree, planes, tri, base, parent_depth, active):
+def _hang(tree, planes, tri, base, parent_depth, active, key=None):
     """Write the 4-node subtrees of triangles ``tri`` (where ``active``) at nodes base … base + 3:
-    its three shadow planes chained by their negative links, then its capping plane."""
+    its three shadow planes chained by their negative links, then its capping plane; and, given the
+    ``key`` of the empty link each was taken at, the link to its subtree. ``planes``: the four
+    planes' (n.x, n.y, n.z, d) as 4 arrays of 4·T, plane j of triangle t at j·T + t.
+
+    One scatter per array of the tree over the 4 nodes of every triangle (lane j·m + i: node j of
+    triangle i): Dr.Jit evaluates pending work before a second scatter into an array, so a scatter
+    per node would be a kernel per node."""
     Pn, is_cap, child, depth, owner = tree
-    for j in range(4):
-        k = base + j
-        for c in range(4):
-            dr.scatter(Pn[c], dr.gather(mi.Float64, planes[j][c], tri, active), k, active)
-        dr.scatter(depth, parent_depth + 1 + j, k, active)
-        dr.scatter(owner, tri, k, active)
-    for j in range(3):
-        dr.scatter(child, base + j + 1, (base + j) * 3 + 2, active)
-    dr.scatter(is_cap, True, base + 3, active)
+    I32, U32 = mi.Int32, mi.UInt32
+    m = dr.width(tri)
+    lane = dr.arange(U32, 4 * m)
+    j = lane // m
+    i = lane - j * m
+    t, b = dr.gather(I32, tri, i), dr.gather(I32, base, i)
+    act = dr.gather(mi.Bool, active, i)
+    k = U32(b + I32(j))
+    src = j * U32(dr.width(planes[0]) // 4) + U32(t)
+    for c in range(4):
+        dr.scatter(Pn[c], dr.gather(mi.Float64, planes[c], src, act), k, act)
+    dr.scatter(depth, dr.gather(I32, parent_depth, i) + 1 + I32(j), k, act)
+    dr.scatter(owner, t, k, act)
+    dr.scatter(is_cap, True, k, act & (j == 3))
+    # nodes 0-2 link on to the next by their negative link; lane 3 writes the parent's link to node 0
+    chain = j < 3
+    if key is None:
+        dr.scatter(child, b + I32(j) + 1, U32(b + I32(j)) * 3 + 2, act & chain)
+    else:
+        dr.scatter(child, dr.select(chain, b + I32(j) + 1, b),
+                   dr.select(chain, U32(b + I32(j)) * 3 + 2, U32(dr.gather(I32, key, i))), act)
 
 
 def _round(tree, planes, win, links, lane, tri, Vp, node, alive, used, eps):
@@ -532,8 +550,7 @@ def _round(tree, planes, win, links, lane, tri, Vp, node, alive, used, eps):
     first = cand & (dr.gather(U32, win, U32(key), cand) == lane)
     parent_depth = dr.gather(I32, depth, node, cand)
     dr.eval(base, first, parent_depth)
-    _hang(tree, planes, tri, base, parent_depth, first)
-    dr.scatter(child, base, key, first)
+    _hang(tree, planes, tri, base, parent_depth, first, key)
     node = dr.select(cand, base, node)
     alive = alive & ~first
     dr.scatter_reduce(dr.ReduceOp.Add, counts, U32(1), U32(2), alive)
@@ -617,6 +634,7 @@ def build_top_tree(V, light, *, origin=None, order="random") -> TopTree:
     else:
         scale_h = 1e-30
     planes, bad = _device_planes(v, lo[:3], float(lo[3]), scale_h)
+    planes = [dr.concat([planes[j][c] for j in range(4)]) for c in range(4)]   # plane j of triangle t at j·T + t
     if isinstance(order, np.ndarray):
         perm = I32(np.asarray(order, np.int32))
     elif order == "random":
