@@ -593,6 +593,10 @@ def _subtree_near(top: int, near, depth, child):
 #: rounds run between two reads of the triangles left: on a GPU, one replayed stage (a round with
 #: nothing pending launches its kernels but changes nothing); on the CPU rounds are traced, one by one
 ROUNDS_PER_READ = 8
+#: rounds the last GPU build of a tree of each capacity took: the next build of that capacity runs as
+#: many (rounded up to ROUNDS_PER_READ) before its first read, so a tree built again (a new frame, a
+#: light moved a little) waits for the device once rather than once per ROUNDS_PER_READ
+_LAST_ROUNDS: dict = {}
 
 
 class _Builds:
@@ -615,8 +619,9 @@ def build_top_tree(V, light, *, origin=None, order="random") -> TopTree:
     link takes it (a ``Min`` scatter-reduction over the links), and the links taken in a round get
     their subtrees in the order of their index (a prefix sum over the links), as numpy's sorted
     ``unique`` gives them, so the tree is the reference's node for node. One wait per
-    :data:`ROUNDS_PER_READ` rounds on a GPU, per round on the CPU (how many triangles are left), and
-    one at the start (which triangles are degenerate)."""
+    :data:`ROUNDS_PER_READ` rounds on a GPU (the first after as many rounds as the last build of the
+    tree's capacity took), per round on the CPU (how many triangles are left), and one at the start
+    (which triangles are degenerate)."""
     t0 = time.perf_counter()
     tris = V if isinstance(V, Triangles) else upload_triangles(V)
     light = np.asarray(light, np.float64)
@@ -680,14 +685,17 @@ def build_top_tree(V, light, *, origin=None, order="random") -> TopTree:
             totals = dr.opaque(U32, 0, 4) + U32(0, 4, 0, M)   # dropped, nodes in use, rounds, triangles left
             dr.eval(totals)
             left, run = M, 0
+            ahead = max(k, -(-_LAST_ROUNDS.get(cap_n, 0) // k) * k)
             while left:
-                node, alive, totals = replayed("top_tree_round", (cap_n, k), _rounds, _BUILDS, k, tree, planes,
-                                               win, links, lane, tri, Vp, node, alive, totals, eps_dr)
-                run += k
+                node, alive, totals = replayed("top_tree_round", (cap_n, ahead), _rounds, _BUILDS, ahead, tree,
+                                               planes, win, links, lane, tri, Vp, node, alive, totals, eps_dr)
+                run += ahead
+                ahead = k
                 if run > cap_n + k:   # each round takes every pending triangle one level down a tree of cap_n nodes
                     raise RuntimeError(f"TOP tree build: {left} triangles still pending after {run} rounds")
                 left = int(dr.gather(U32, totals, U32(3)).numpy()[0])
             dropped, used, rounds, _ = (int(x) for x in totals.numpy())
+            _LAST_ROUNDS[cap_n] = rounds
         else:
             left = M
             while left:
