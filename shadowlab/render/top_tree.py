@@ -517,9 +517,10 @@ def _hang(tree, planes, tri, base, parent_depth, active, key=None):
 def _round(tree, planes, win, links, lane, tri, Vp, node, alive, used, eps):
     """One round of the build: every pending triangle (``alive``) steps down one link of ``tree``;
     the first in insertion order (the lowest ``lane``) to reach an empty link takes it; ``used``:
-    the nodes in use (width 1). Returns the triangles' nodes and pending flags after the round and
-    (dropped, subtrees hung, triangles left) as a UInt32 array of 3, on the device. A round with
-    nothing pending changes nothing."""
+    the nodes in use (width 1). Returns the triangles' nodes and pending flags after the round,
+    (dropped, 0, triangles left) as a UInt32 array of 3 on the device, and the subtrees hung (a
+    width-1 UInt32 not yet evaluated: the caller's read or totals evaluate it). A round with nothing
+    pending changes nothing."""
     I32, U32, F = mi.Int32, mi.UInt32, mi.Float64
     Pn, is_cap, child, depth, _ = tree
     counts = dr.zeros(U32, 3)
@@ -545,7 +546,7 @@ def _round(tree, planes, win, links, lane, tri, Vp, node, alive, used, eps):
     taken = U32((win != 0xFFFFFFFF) & (dr.gather(I32, child, links) == _LEAF))
     slot = dr.prefix_sum(taken)
     last = dr.width(links) - 1
-    dr.scatter(counts, dr.gather(U32, slot, U32(last)) + dr.gather(U32, taken, U32(last)), U32(1))
+    hung = dr.gather(U32, slot, U32(last)) + dr.gather(U32, taken, U32(last))   # read with the caller's totals
     base = used + 4 * I32(dr.gather(U32, slot, U32(key), cand))
     first = cand & (dr.gather(U32, win, U32(key), cand) == lane)
     parent_depth = dr.gather(I32, depth, node, cand)
@@ -555,7 +556,7 @@ def _round(tree, planes, win, links, lane, tri, Vp, node, alive, used, eps):
     alive = alive & ~first
     dr.scatter_reduce(dr.ReduceOp.Add, counts, U32(1), U32(2), alive)
     dr.eval(node, alive, tree, counts)
-    return node, alive, counts
+    return node, alive, counts, hung
 
 
 def _rounds(k: int, tree, planes, win, links, lane, tri, Vp, node, alive, totals, eps):
@@ -565,11 +566,11 @@ def _rounds(k: int, tree, planes, win, links, lane, tri, Vp, node, alive, totals
     U32 = mi.UInt32
     for _ in range(k):
         busy = dr.gather(U32, totals, U32(3)) > 0
-        node, alive, counts = _round(tree, planes, win, links, lane, tri, Vp, node, alive,
-                                     mi.Int32(dr.gather(U32, totals, U32(1))), eps)
+        node, alive, counts, hung = _round(tree, planes, win, links, lane, tri, Vp, node, alive,
+                                           mi.Int32(dr.gather(U32, totals, U32(1))), eps)
         c = [dr.gather(U32, counts, U32(j)) for j in range(3)]
         totals = dr.ravel(mi.Vector4u(dr.gather(U32, totals, U32(0)) + c[0],
-                                      dr.gather(U32, totals, U32(1)) + 4 * c[1],
+                                      dr.gather(U32, totals, U32(1)) + 4 * hung,
                                       dr.gather(U32, totals, U32(2)) + dr.select(busy, U32(1), U32(0)), c[2]))
         dr.eval(totals)
     return node, alive, totals
@@ -700,8 +701,9 @@ def build_top_tree(V, light, *, origin=None, order="random") -> TopTree:
             left = M
             while left:
                 rounds += 1
-                node, alive, counts = _round(tree, planes, win, links, lane, tri, Vp, node, alive,
-                                             dr.opaque(I32, used), eps_dr)
+                node, alive, counts, hung = _round(tree, planes, win, links, lane, tri, Vp, node, alive,
+                                                   dr.opaque(I32, used), eps_dr)
+                dr.scatter(counts, hung, U32(1))
                 d, new, left = (int(x) for x in counts.numpy())
                 if rounds > cap_n:
                     raise RuntimeError(f"TOP tree build: {left} triangles still pending after {rounds} rounds")

@@ -329,8 +329,10 @@ class FusedDPSVSoft(_Fused):
     params = SOFT_PARAMS + TREE_PARAMS + BIAS_PARAMS
 
     def evaluate(self, frame, light, view, values, ctx):
-        rec, hard_vis, edge, tree_aovs, tree = self.fused(frame, light, view, values, ctx)
-        dr.eval(hard_vis)  # the visibility map: a stage boundary, read by the filter at other pixels
+        # everything the tree does not enter is traced first: the tree's build waits for the device (the
+        # G-buffer's kernels still running), and the host traces this meanwhile instead of after it
+        rec = receiver(frame, view, ctx.bias)
+        h0, edge = edge_classify(view, rec, ctx.bias)
         w_light, w_val = scaled_size(values["light_scale"], scene_light_size(light))
         zr = rec["z"]
         for name in ("depth", "slope", "z"):  # upload before the symbolic loops record
@@ -355,6 +357,9 @@ class FusedDPSVSoft(_Fused):
         nt = int(values["filter_samples"])
         px, py = pattern_arrays(pcf_pattern(nt))
         reject = dr.opaque(mi.Float, float(values["depth_reject"])) * w_filter
+        tv, tree_aovs, tree = tree_visibility(frame, light, values, edge)
+        hard_vis = dr.select(edge, tv, h0)
+        dr.eval(hard_vis)  # the visibility map: a stage boundary, read by the filter at other pixels
         vis = _filter_visibility(screen, hard_vis, to_light(view, frame.gbuffer.p), w_filter, reject, px, py, nt, run)
         aovs = {"edge": dr.select(edge, 1.0, 0.0), **tree_aovs, "texel": rec["texel"],
                 "penumbra_width": dr.select(found, w_pen, 0.0), "filter_pixels": dr.select(run, w_px, 0.0),
