@@ -564,7 +564,42 @@ def test_discarding_extreme_demands_never_raises_a_cell_demand_or_adds_tiles(out
     assert np.any(out[-1][0] < out[0][0]) or np.any(out[-1][1] < out[0][1])
     values = t.resolve({**SMALL, "discard": 0.5, "smtmm_scale": 1})
     d = t.demand(outdoor, t.base(outdoor, outdoor.lights[0], values), values)
-    assert d["dropped"].sum() == 0 and d["smtmm"].lx[d["smtmm"].ok].max() < 17
+    sm = d["smtmm"].numpy()
+    assert d["dropped"].sum() == 0 and sm.lx[sm.ok].max() < 17
+
+
+def _grids_equal(a, b) -> bool:
+    return (a.n, a.eta0, a.eta1) == (b.n, b.eta0, b.eta1) and all(
+        np.array_equal(x, y) and x.dtype == y.dtype for x, y in
+        [(a.count, b.count), (a.rect, b.rect)] + [(getattr(a, f)[k], getattr(b, f)[k])
+                                                  for f in ("max", "hist", "lo_max") for k in ("x", "y")])
+
+
+def test_the_device_grid_is_the_numpy_grid(outdoor, mitsuba_backend):
+    """A frame's SMTMM stays on the device and its SMTG is accumulated there: the same grid, cell for
+    cell and bin for bin, as numpy's from the same samples read back (on a rendered frame, every
+    grid size, and on random samples with an empty cell and levels below the empty mark)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from shadowlab.techniques.virtual_maps import DeviceSMTMM
+    t = base.get("fvsm")
+    for n in (1, 4, 16):
+        values = t.resolve({**SMALL, "grid": n, "smtmm_scale": 2, "eta0": 4, "eta1": 20})
+        d = t.demand(outdoor, t.base(outdoor, outdoor.lights[0], values), values)
+        assert isinstance(d["smtmm"], DeviceSMTMM) and d["grid"].count.sum() > 0
+        assert _grids_equal(d["grid"], tile_grid(d["smtmm"].numpy(), n, 4, 20)), n
+    rng = np.random.default_rng(6)
+    h, w, n, k = 13, 17, 4, 13 * 17
+    x, y = rng.uniform(-1.2, 1.2, k), rng.uniform(-1.2, 1.2, k)
+    ok = (rng.random(k) > 0.25) & ~((x < -0.5) & (y > 0.5)) & (np.abs(x) <= 1) & (np.abs(y) <= 1)
+    lx, ly = rng.integers(-3, 30, k), rng.integers(-3, 30, k)
+    host = SMTMM((h, w), 1, x, y, lx, ly, ok)
+    dev = DeviceSMTMM((h, w), 1, mi.Float64(x), mi.Float64(y), mi.Int32(lx.astype(np.int32)),
+                      mi.Int32(ly.astype(np.int32)), mi.Bool(ok))
+    g = tile_grid(dev, n, 17, 22)
+    assert _grids_equal(g, tile_grid(host, n, 17, 22)) and g.count[0, 0] == 0
+    assert dr.width(dev.ok) == k
 
 
 @pytest.mark.parametrize("name, frame", [("street", None), ("boulevard", 0), ("boulevard", 11)])

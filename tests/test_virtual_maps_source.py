@@ -106,7 +106,7 @@ def test_the_smtmm_samples_each_blocks_centre_pixel(bars, scale):
     scr = bars.screen
     H, W = scr.height, scr.width
     img = lambda a: np.asarray(a.numpy(), np.float64).reshape(H, W)[scale // 2::scale, scale // 2::scale]  # noqa: E731
-    sm = d["smtmm"]
+    sm = d["smtmm"].numpy()                     # sampled on the device
     assert sm.shape == (H // scale, W // scale)
     assert np.array_equal(sm.x.reshape(sm.shape), img(d["x"]).astype(np.float32).astype(np.float64))
     assert np.array_equal(sm.lx.reshape(sm.shape), img(d["lx"]).astype(np.int64))

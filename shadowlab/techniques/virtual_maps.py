@@ -327,18 +327,37 @@ class SMTMM:
     ok: np.ndarray
 
 
-def sample_smtmm(screen, x, y, lx, ly, scale: int) -> SMTMM:
-    """Every ``scale``-th grid pixel (each scale × scale block's centre) of the per-point maps."""
+@dataclass
+class DeviceSMTMM:
+    """:class:`SMTMM` left on the device (Dr.Jit arrays: x, y Float64, lx, ly Int32, ok Bool), as a
+    frame samples it: :func:`tile_grid` accumulates it there and reads back only the grid."""
+
+    shape: tuple
+    scale: int
+    x: object
+    y: object
+    lx: object
+    ly: object
+    ok: object
+
+    def numpy(self) -> SMTMM:
+        """The same samples as a numpy :class:`SMTMM`."""
+        return SMTMM(self.shape, self.scale, self.x.numpy().astype(np.float64), self.y.numpy().astype(np.float64),
+                     self.lx.numpy().astype(np.int64), self.ly.numpy().astype(np.int64), self.ok.numpy().astype(bool))
+
+
+def sample_smtmm(screen, x, y, lx, ly, scale: int) -> DeviceSMTMM:
+    """Every ``scale``-th grid pixel (each scale × scale block's centre) of the per-point maps, on
+    the device."""
     W, H = screen.width, screen.height
     w, h = -(-W // scale), -(-H // scale)
-    gx = np.minimum(np.arange(w) * scale + scale // 2, W - 1)
-    gy = np.minimum(np.arange(h) * scale + scale // 2, H - 1)
-    GX, GY = np.meshgrid(gx, gy, indexing="xy")
-    idx = screen.index(mi.Int32(GX.ravel().astype(np.int32)), mi.Int32(GY.ravel().astype(np.int32)))
-    g = lambda a, t=mi.Float: dr.gather(t, a, idx).numpy()  # noqa: E731
-    X, Y = g(x).astype(np.float64), g(y).astype(np.float64)
-    ok = g(screen.valid, mi.Bool).astype(bool) & (np.abs(X) <= 1.0) & (np.abs(Y) <= 1.0)
-    return SMTMM((h, w), int(scale), X, Y, g(lx).astype(np.int64), g(ly).astype(np.int64), ok)
+    k = dr.arange(mi.Int32, w * h)
+    row, col = k // w, k % w
+    idx = screen.index(dr.minimum(col * scale + scale // 2, W - 1), dr.minimum(row * scale + scale // 2, H - 1))
+    X, Y = mi.Float64(dr.gather(mi.Float, x, idx)), mi.Float64(dr.gather(mi.Float, y, idx))
+    ok = dr.gather(mi.Bool, screen.valid, idx) & (dr.abs(X) <= 1.0) & (dr.abs(Y) <= 1.0)
+    return DeviceSMTMM((h, w), int(scale), X, Y, mi.Int32(dr.gather(type(lx), lx, idx)),
+                       mi.Int32(dr.gather(type(ly), ly, idx)), ok)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -376,8 +395,11 @@ def _per_cell(ufunc, groups, values, size: int, fill: int) -> np.ndarray:
     return out
 
 
-def tile_grid(sm: SMTMM, n: int, eta0: int, eta1: int) -> Grid:
-    """Accumulate the SMTMM pixels into the n × n SMTG (numpy, no loop over pixels)."""
+def tile_grid(sm, n: int, eta0: int, eta1: int) -> Grid:
+    """Accumulate the SMTMM pixels into the n × n SMTG: a :class:`DeviceSMTMM` on the device
+    (:func:`_device_grid`), a numpy :class:`SMTMM` in numpy (no loop over pixels); the same grid."""
+    if isinstance(sm, DeviceSMTMM):
+        return _device_grid(sm, n, eta0, eta1)
     ok = sm.ok
     cx, cy = cells_of(sm.x[ok], sm.y[ok], n)
     cell = cy * n + cx
@@ -398,6 +420,41 @@ def tile_grid(sm: SMTMM, n: int, eta0: int, eta1: int) -> Grid:
     rect = np.stack([_per_cell(np.minimum, groups, px, n * n, big), _per_cell(np.minimum, groups, py, n * n, big),
                      _per_cell(np.maximum, groups, px, n * n, -1), _per_cell(np.maximum, groups, py, n * n, -1)], -1)
     return Grid(n, eta0, eta1, count, mx, hist, lo, rect.reshape(n, n, 4))
+
+
+def _device_grid(sm: DeviceSMTMM, n: int, eta0: int, eta1: int) -> Grid:
+    """:func:`tile_grid` of SMTMM pixels on the device: every count, maximum, minimum and histogram
+    bin an integer scatter-reduction over the pixels (one kernel; integer atomics, so the grid does
+    not depend on their order), the n × n grid read back once."""
+    I32, U32 = mi.Int32, mi.UInt32
+    ok = sm.ok
+    cx, cy = cells_of(sm.x, sm.y, n)
+    cell = U32(cy * n + cx)
+    nb = eta1 - eta0 + 3
+    big = 2 ** 31 - 1
+    k = dr.arange(I32, dr.width(ok))
+    px, py = k % sm.shape[1], k // sm.shape[1]
+    count = dr.zeros(I32, n * n)
+    dr.scatter_reduce(dr.ReduceOp.Add, count, I32(1), cell, ok)
+    parts = [count]
+    for L in (sm.lx, sm.ly):
+        mx, lo, hist = dr.full(I32, -1, n * n), dr.full(I32, -1, n * n), dr.zeros(I32, n * n * nb)
+        dr.scatter_reduce(dr.ReduceOp.Max, mx, L, cell, ok)
+        dr.scatter_reduce(dr.ReduceOp.Max, lo, L, cell, ok & (L < eta0))
+        b = dr.clip(L - eta0 + 1, 0, eta1 - eta0 + 2)
+        dr.scatter_reduce(dr.ReduceOp.Add, hist, I32(1), cell * nb + U32(b), ok)
+        parts += [mx, lo, hist]
+    rect = [dr.full(I32, big, n * n), dr.full(I32, big, n * n), dr.full(I32, -1, n * n), dr.full(I32, -1, n * n)]
+    for r, v, op in zip(rect, (px, py, px, py), (dr.ReduceOp.Min, dr.ReduceOp.Min, dr.ReduceOp.Max, dr.ReduceOp.Max)):
+        dr.scatter_reduce(op, r, v, cell, ok)
+    host = dr.concat(parts + rect).numpy().astype(np.int64)     # the grid's one read
+    sizes = [n * n] + [n * n, n * n, n * n * nb] * 2 + [n * n] * 4
+    count, mxx, lox, hx, mxy, loy, hy, *rc = np.split(host, np.cumsum(sizes)[:-1])
+    rect = np.stack(rc, -1)
+    rect[rect == big] = np.iinfo(np.int64).max                 # an empty cell's minimum, as numpy's fill
+    return Grid(n, eta0, eta1, count.reshape(n, n), {"x": mxx.reshape(n, n), "y": mxy.reshape(n, n)},
+                {"x": hx.reshape(n, n, nb), "y": hy.reshape(n, n, nb)},
+                {"x": lox.reshape(n, n), "y": loy.reshape(n, n)}, rect.reshape(n, n, 4))
 
 
 def cell_demand(g: Grid, fraction: float) -> tuple:
