@@ -43,7 +43,7 @@ def test_the_new_frame_is_the_median_plain_frame_and_sets_the_ratio(bench):
     """The new frame (the goals' figure) is the median of the plain frames; new / limit is over it."""
     for name, r in bench["rec"]["results"]["scenes"]["contact"]["techniques"].items():
         runs = sorted(r["new_runs_s"])
-        assert len(runs) == frames.NEW_FRAMES and r["new_s"] == runs[len(runs) // 2], name
+        assert len(runs) == frames.PLAIN_FRAMES and r["new_s"] == runs[len(runs) // 2], name
         assert r["new_s"] > 0 and r["new_over_limit"] == pytest.approx(r["new_s"] / r["limit_s"], rel=1e-12), name
 
 

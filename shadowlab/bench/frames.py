@@ -11,10 +11,11 @@ pass included) and [Tamás 2015, §7] its milliseconds. For every technique that
   technique's render on it, every light view cast anew, after :data:`WARMUP_FRAMES` untimed new
   frames (the G-buffer and the light views are replayed stages, :mod:`shadowlab.render.replay`: the
   first frame traces them, the second records them, the third is the first replay): the median
-  wall time of :data:`NEW_FRAMES` frames run as a user's run runs them (:func:`plain_frame`: no
-  kernel history, no wait inside the frame). This is the figure of the goals and of new / limit;
-* **split** of a new frame, from :data:`NEW_FRAMES` more new frames run in turn with the plain
-  ones, instrumented (:func:`new_frame`; the one of median wall time): *G-buffer* (``make_frame``),
+  wall time of :data:`PLAIN_FRAMES` frames run as a user's run runs them (:func:`plain_frame`: no
+  kernel history, no wait inside the frame; after as many untimed, as Dr.Jit records its stages
+  again without the history). This is the figure of the goals and of new / limit;
+* **split** of a new frame, from :data:`NEW_FRAMES` more new frames, instrumented
+  (:func:`new_frame`; the one of median wall time): *G-buffer* (``make_frame``),
   *light views* (the wall time of the casts, ``FrameContext.cast``, and of the calls to
   ``top_tree``, each between ``dr.sync_thread()`` calls, the views evaluated) and *technique* (the
   render's wall time less its light views), with Dr.Jit's kernel history on. *Host* is the part
@@ -81,9 +82,13 @@ REPEATS = 5
 #: frame's stages (render/replay.py), the third replays them for the first time (the virtual maps still
 #: compiled a kernel or two there on a GPU), so the timed one is as every later frame of a run
 WARMUP_FRAMES = 3
-#: timed new frames per technique: the row is the one of median wall time (a single frame's host time
-#: varies by milliseconds from frame to frame on a GPU)
+#: instrumented new frames per technique (the split): the row is the one of median wall time (a single
+#: frame's host time varies by milliseconds from frame to frame on a GPU)
 NEW_FRAMES = 3
+#: plain new frames per technique (:func:`plain_frame`): the new frame is their median, after as many
+#: untimed as WARMUP_FRAMES (Dr.Jit records a frozen stage again under other JIT flags, and the kernel
+#: history the instrumented frames turn on is one: the first plain frame after them records anew)
+PLAIN_FRAMES = 5
 _PACKAGE = str(Path(__file__).resolve().parents[1])
 _BENCH = str(Path(__file__).resolve().parent)
 
@@ -252,10 +257,12 @@ def measure(sc, name: str, *, repeats: int = REPEATS, raw_cache: dict | None = N
     p = t.resolve({})
     for _ in range(WARMUP_FRAMES):                 # compiles every kernel, records the frame's stages, replays
         new_frame(sc, t, p)
-    splits, walls = [], []
+    for _ in range(WARMUP_FRAMES):                 # the same without the kernel history: recorded apart
+        plain_frame(sc, t, p)
+    walls = [plain_frame(sc, t, p) for _ in range(PLAIN_FRAMES)]
+    splits = []
     for _ in range(NEW_FRAMES):
         frame = r = None  # the last frame's views freed before the next is cast (kept, they slowed its casts 2x)
-        walls.append(plain_frame(sc, t, p))
         frame, r, split = new_frame(sc, t, p)
         splits.append(split)
     split = sorted(splits, key=lambda s: s["total_s"])[len(splits) // 2]
@@ -363,8 +370,9 @@ def markdown(res: dict) -> str:
              f"New frame: `make_frame` and the render on a fresh frame, every light view cast anew (ms), after "
              f"{WARMUP_FRAMES} untimed new frames (the first compiles the kernels, the second records the G-buffer "
              "and light-view stages, the third replays them first; the timed frames are as every later frame of "
-             f"a run), the median wall time of {NEW_FRAMES}, run as a user's run runs them (no kernel history, no "
-             f"wait inside the frame). Split: {NEW_FRAMES} more new frames, run in turn with those, instrumented "
+             f"a run), the median wall time of {PLAIN_FRAMES}, run as a user's run runs them (no kernel history, no "
+             f"wait inside the frame; after {WARMUP_FRAMES} more untimed, as Dr.Jit records its stages again "
+             f"without the history). Split: {NEW_FRAMES} more new frames, instrumented "
              "(the one of median wall time): G-buffer, light views (the casts of maps and TOP trees, each "
              "synchronised) and technique (the rest of the render), with Dr.Jit's kernel history on; host: that "
              "frame's wall time in which no kernel ran (wall minus the kernels' execution times from the kernel "
