@@ -361,14 +361,34 @@ _CORNER = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)])
 
 
 def _corners(scene):
-    """Corners of every non-emitting shape's bounding box (tighter than the scene's box), (8·S, 3).
+    """Corners of every non-emitting shape's bounding box (tighter than the scene's box), (8·S, 3),
+    made once per scene (in ``scene.derived``, where it has one; read-only).
 
     >>> from types import SimpleNamespace
     >>> _corners(SimpleNamespace(shape_boxes=[((0, 0, 0), (1, 2, 3))]))[[0, 1, 7]].tolist()
     [[0.0, 0.0, 0.0], [0.0, 0.0, 3.0], [1.0, 2.0, 3.0]]
     """
+    memo = getattr(scene, "derived", None)
+    if memo is not None and "shape_corners" in memo:
+        return memo["shape_corners"]
     boxes = np.asarray(scene.shape_boxes, np.float64).reshape(-1, 2, 3)
-    return boxes[:, _CORNER, np.arange(3)].reshape(-1, 3)
+    c = boxes[:, _CORNER, np.arange(3)].reshape(-1, 3)
+    c.flags.writeable = False
+    if memo is not None:
+        memo["shape_corners"] = c
+    return c
+
+
+def _camera(scene) -> Camera:
+    """The scene's camera (:meth:`Camera.from_scene`), made once per scene (in ``scene.derived``):
+    every cascade of every frame fits it."""
+    memo = getattr(scene, "derived", None)
+    if memo is None:
+        return Camera.from_scene(scene)
+    key = ("camera", scene.spec.camera, tuple(scene.resolution))
+    if key not in memo:
+        memo[key] = Camera.from_scene(scene)
+    return memo[key]
 
 
 def _near_far(light, o, scene):
@@ -408,10 +428,8 @@ def _frustum_slice(light, scene, res: int, fit: FrustumSlice) -> Projection:
         raise InputError(f"light {light.name!r} is a {light.kind} light: a FrustumSlice fit (an orthographic map "
                          "of a camera-frustum slice) is for directional lights; fit the others with SceneSphere() "
                          "or a TileRect of it")
-    cam = Camera.from_scene(scene)
-    corners = cam.frustum_corners(fit.z0, fit.z1)
-    d = np.array(lights_mod.forward(light))
-    Rm = _frame(d, light.up)
+    corners = _camera(scene).frustum_corners(fit.z0, fit.z1)
+    Rm = light_frame(light)
     c = corners.mean(axis=0)
     r = float(np.max(np.linalg.norm(corners - c, axis=1)))
     r = math.ceil(r * 8.0) / 8.0                     # Code A.13: radius in steps of 1/8
@@ -440,9 +458,13 @@ def _frustum_slice(light, scene, res: int, fit: FrustumSlice) -> Projection:
     return Projection((Face(tuple(o), tuple(map(tuple, Rm)), True, half, near, far),), res, False, fit)
 
 
+@functools.lru_cache(maxsize=256)
 def light_frame(light) -> np.ndarray:
-    """Rows right, up, forward of a light's camera (forward = the direction it faces)."""
-    return _frame(np.array(lights_mod.forward(light)), light.up)
+    """Rows right, up, forward of a light's camera (forward = the direction it faces); read-only,
+    made once per light."""
+    R = _frame(np.array(lights_mod.forward(light)), light.up)
+    R.flags.writeable = False
+    return R
 
 
 def _light_square(light, scene, res: int, fit: LightSquare) -> Projection:
