@@ -579,7 +579,6 @@ def test_the_device_grid_is_the_numpy_grid(outdoor, mitsuba_backend):
     """A frame's SMTMM stays on the device and its SMTG is accumulated there: the same grid, cell for
     cell and bin for bin, as numpy's from the same samples read back (on a rendered frame, every
     grid size, and on random samples with an empty cell and levels below the empty mark)."""
-    import drjit as dr
     import mitsuba as mi
 
     from shadowlab.techniques.virtual_maps import DeviceSMTMM
@@ -599,7 +598,6 @@ def test_the_device_grid_is_the_numpy_grid(outdoor, mitsuba_backend):
                       mi.Int32(ly.astype(np.int32)), mi.Bool(ok))
     g = tile_grid(dev, n, 17, 22)
     assert _grids_equal(g, tile_grid(host, n, 17, 22)) and g.count[0, 0] == 0
-    assert dr.width(dev.ok) == k
 
 
 @pytest.mark.parametrize("name, frame", [("street", None), ("boulevard", 0), ("boulevard", 11)])

@@ -209,16 +209,12 @@ def new_frame(sc, technique, params) -> tuple:
     return tf, r, split
 
 
-def plain_frame(sc, technique, params) -> float:
-    """Seconds of one new frame as a user's run pays it: ``make_frame`` and the render, evaluated,
-    between two ``dr.sync_thread()`` calls, with no kernel history and no wait in between (the host
+def plain_frame(sc, technique, params):
+    """One new frame as a user's run pays it (timed with :func:`~shadowlab.bench.timing.timed`):
+    ``make_frame`` and the render, evaluated, with no kernel history and no wait in between (the host
     traces the next stage while the device runs the last; :func:`new_frame`'s split waits after
     each part and logs every kernel, which costs more the more kernels a frame launches)."""
-    dr.sync_thread()
-    t0 = time.perf_counter()
-    render_evaluated(technique, make_frame(sc), params)
-    dr.sync_thread()
-    return time.perf_counter() - t0
+    return render_evaluated(technique, make_frame(sc), params)
 
 
 def warm_frame(frame, technique, params, repeats: int) -> dict:
@@ -257,9 +253,8 @@ def measure(sc, name: str, *, repeats: int = REPEATS, raw_cache: dict | None = N
     p = t.resolve({})
     for _ in range(WARMUP_FRAMES):                 # compiles every kernel, records the frame's stages, replays
         new_frame(sc, t, p)
-    for _ in range(WARMUP_FRAMES):                 # the same without the kernel history: recorded apart
-        plain_frame(sc, t, p)
-    walls = [plain_frame(sc, t, p) for _ in range(PLAIN_FRAMES)]
+    # the same without the kernel history, which Dr.Jit records apart: untimed first
+    _, walls = timed(lambda: plain_frame(sc, t, p), PLAIN_FRAMES, warmup=WARMUP_FRAMES)
     splits = []
     for _ in range(NEW_FRAMES):
         frame = r = None  # the last frame's views freed before the next is cast (kept, they slowed its casts 2x)

@@ -117,8 +117,15 @@ class Camera:
 
     @classmethod
     def from_scene(cls, scene) -> "Camera":
-        """The camera of a built :class:`shadowlab.scene.Scene` at its resolution."""
-        return cls.from_spec(scene.spec.camera, scene.resolution)
+        """The camera of a built :class:`shadowlab.scene.Scene` at its resolution, made once per
+        scene (kept in ``scene.derived``, where it has one: every frame and cascade fit reads it)."""
+        memo = getattr(scene, "derived", None)
+        if memo is None:
+            return cls.from_spec(scene.spec.camera, scene.resolution)
+        key = ("camera", scene.spec.camera, tuple(scene.resolution))
+        if key not in memo:
+            memo[key] = cls.from_spec(scene.spec.camera, scene.resolution)
+        return memo[key]
 
     def __repr__(self):
         return (f"Camera(position={self.position.tolist()}, target={self.target.tolist()}, fov={self.fov}, "

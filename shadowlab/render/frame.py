@@ -113,10 +113,8 @@ class FrameContext:
 
     @property
     def camera(self) -> Camera:
-        """The scene's :class:`~shadowlab.render.camera.Camera` at the frame's resolution (made once)."""
-        if "camera" not in self._cache:
-            self._cache["camera"] = Camera.from_scene(self.scene)
-        return self._cache["camera"]
+        """The scene's :class:`~shadowlab.render.camera.Camera` at the frame's resolution (made once per scene)."""
+        return Camera.from_scene(self.scene)
 
     @property
     def screen(self) -> Screen:

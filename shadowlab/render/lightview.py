@@ -379,18 +379,6 @@ def _corners(scene):
     return c
 
 
-def _camera(scene) -> Camera:
-    """The scene's camera (:meth:`Camera.from_scene`), made once per scene (in ``scene.derived``):
-    every cascade of every frame fits it."""
-    memo = getattr(scene, "derived", None)
-    if memo is None:
-        return Camera.from_scene(scene)
-    key = ("camera", scene.spec.camera, tuple(scene.resolution))
-    if key not in memo:
-        memo[key] = Camera.from_scene(scene)
-    return memo[key]
-
-
 def _near_far(light, o, scene):
     c = _corners(scene)
     far = float(np.max(np.linalg.norm(c - o, axis=1))) * 1.01 + 1e-3
@@ -428,7 +416,7 @@ def _frustum_slice(light, scene, res: int, fit: FrustumSlice) -> Projection:
         raise InputError(f"light {light.name!r} is a {light.kind} light: a FrustumSlice fit (an orthographic map "
                          "of a camera-frustum slice) is for directional lights; fit the others with SceneSphere() "
                          "or a TileRect of it")
-    corners = _camera(scene).frustum_corners(fit.z0, fit.z1)
+    corners = Camera.from_scene(scene).frustum_corners(fit.z0, fit.z1)
     Rm = light_frame(light)
     c = corners.mean(axis=0)
     r = float(np.max(np.linalg.norm(corners - c, axis=1)))

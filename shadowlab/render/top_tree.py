@@ -568,10 +568,10 @@ def _rounds(k: int, tree, planes, win, links, lane, tri, Vp, node, alive, totals
         busy = dr.gather(U32, totals, U32(3)) > 0
         node, alive, counts, hung = _round(tree, planes, win, links, lane, tri, Vp, node, alive,
                                            mi.Int32(dr.gather(U32, totals, U32(1))), eps)
-        c = [dr.gather(U32, counts, U32(j)) for j in range(3)]
-        totals = dr.ravel(mi.Vector4u(dr.gather(U32, totals, U32(0)) + c[0],
+        dropped, left = dr.gather(U32, counts, U32(0)), dr.gather(U32, counts, U32(2))
+        totals = dr.ravel(mi.Vector4u(dr.gather(U32, totals, U32(0)) + dropped,
                                       dr.gather(U32, totals, U32(1)) + 4 * hung,
-                                      dr.gather(U32, totals, U32(2)) + dr.select(busy, U32(1), U32(0)), c[2]))
+                                      dr.gather(U32, totals, U32(2)) + dr.select(busy, U32(1), U32(0)), left))
         dr.eval(totals)
     return node, alive, totals
 
@@ -694,8 +694,7 @@ def build_top_tree(V, light, *, origin=None, order="random") -> TopTree:
                 ahead = k
                 if run > cap_n + k:   # each round takes every pending triangle one level down a tree of cap_n nodes
                     raise RuntimeError(f"TOP tree build: {left} triangles still pending after {run} rounds")
-                left = int(dr.gather(U32, totals, U32(3)).numpy()[0])
-            dropped, used, rounds, _ = (int(x) for x in totals.numpy())
+                dropped, used, rounds, left = (int(x) for x in totals.numpy())   # the stage's one read
             _LAST_ROUNDS[cap_n] = rounds
         else:
             left = M

@@ -364,7 +364,10 @@ def sample_smtmm(screen, x, y, lx, ly, scale: int) -> DeviceSMTMM:
 # the tile grid (SMTG, §4.4), the discard rule and the pyramid (§4.5)
 
 def bucket(levels, eta0: int, eta1: int):
-    """Histogram bucket of demand levels: 0 below η0, L − η0 + 1 for η0 ≤ L ≤ η1, η1 − η0 + 2 above η1."""
+    """Histogram bucket of demand levels: 0 below η0, L − η0 + 1 for η0 ≤ L ≤ η1, η1 − η0 + 2 above η1
+    (numpy int64, or Dr.Jit for Dr.Jit levels)."""
+    if isinstance(levels, dr.ArrayBase):
+        return dr.clip(levels - eta0 + 1, 0, eta1 - eta0 + 2)
     return np.clip(np.asarray(levels, np.int64) - eta0 + 1, 0, eta1 - eta0 + 2)
 
 
@@ -441,8 +444,7 @@ def _device_grid(sm: DeviceSMTMM, n: int, eta0: int, eta1: int) -> Grid:
         mx, lo, hist = dr.full(I32, -1, n * n), dr.full(I32, -1, n * n), dr.zeros(I32, n * n * nb)
         dr.scatter_reduce(dr.ReduceOp.Max, mx, L, cell, ok)
         dr.scatter_reduce(dr.ReduceOp.Max, lo, L, cell, ok & (L < eta0))
-        b = dr.clip(L - eta0 + 1, 0, eta1 - eta0 + 2)
-        dr.scatter_reduce(dr.ReduceOp.Add, hist, I32(1), cell * nb + U32(b), ok)
+        dr.scatter_reduce(dr.ReduceOp.Add, hist, I32(1), cell * nb + U32(bucket(L, eta0, eta1)), ok)
         parts += [mx, lo, hist]
     rect = [dr.full(I32, big, n * n), dr.full(I32, big, n * n), dr.full(I32, -1, n * n), dr.full(I32, -1, n * n)]
     for r, v, op in zip(rect, (px, py, px, py), (dr.ReduceOp.Min, dr.ReduceOp.Min, dr.ReduceOp.Max, dr.ReduceOp.Max)):
