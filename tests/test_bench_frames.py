@@ -156,3 +156,16 @@ def test_the_replay_floor_is_a_replayed_stage_over_the_scene(bench, mitsuba_back
     assert f"the scene's {floor['shapes']} shapes" in bench["md"]
     frames.replay_floor(sc, repeats=2)
     assert replay.recordings("replay_floor", (), sc) == 1
+
+
+def test_a_new_frame_replays_the_g_buffer_and_the_cast_over_the_scene(bench):
+    """contact's shadow-map frame: two stages over the scene (the G-buffer, the light view's cast),
+    replayed after the warm-up; the row shows them with their floors' share of the new frame."""
+    d = bench["rec"]["results"]["scenes"]["contact"]
+    table = [b for b in bench["rec"]["blocks"] if b["type"] == "table"][1]
+    col = table["columns"].index("scene replays (floors' share)")
+    for row in table["rows"]:
+        r = d["techniques"][row[0]]
+        assert r["new"]["scene_replays"] == 2, row[0]
+        share = 100.0 * 2 * d["replay_floor"]["ms"] / (1e3 * r["new_s"])
+        assert row[col] == f"2 ({share:.0f} %)", row

@@ -45,7 +45,10 @@ pass included) and [Tamás 2015, §7] its milliseconds. For every technique that
   scenes have no Mitsuba geometry to cast against: no limit there;
 * **replay floor**, per scene: a replayed stage that does no work but takes the scene as its input
   (:func:`replay_floor`), what each of a frame's replayed stages pays before its kernels (Dr.Jit
-  walks the scene's variables at every call; the more shapes, the longer).
+  walks the scene's variables at every call; the more shapes, the longer); and per technique the
+  **scene replays** of a new frame (the split's calls of stages over the scene through the frozen
+  function, :func:`shadowlab.render.replay.frozen_calls`) with their floors' share of the new frame
+  (replays × floor / new frame): what the frame pays Dr.Jit before any of its own work.
 """
 
 from __future__ import annotations
@@ -67,7 +70,7 @@ from ..io.jsonio import write_json_atomic
 from ..io.png import write_bytes_atomic
 from ..pipeline import check_memory, load_scene
 from ..render.frame import FrameContext, make_frame
-from ..render.replay import replayed
+from ..render.replay import frozen_calls, replayed
 from ..techniques import base
 from .rays import raw_ray_test
 from .timing import history, kernel_summary, machine_text, render_evaluated, timed
@@ -181,6 +184,7 @@ def _texels(stats: dict) -> int:
 
 def new_frame(sc, technique, params) -> tuple:
     """(fresh :class:`TimedFrame`, its result, the split of one new frame) of ``technique``."""
+    calls = frozen_calls(sc)
     history(True)
     try:
         t0 = time.perf_counter()
@@ -203,6 +207,7 @@ def new_frame(sc, technique, params) -> tuple:
     kern = kernel_summary(k_gb + k_views + k_tech)
     split = {"total_s": total, "gbuffer_s": t_gb, "light_views_s": views_s, "technique_s": t_render - views_s,
              "host_s": max(total - kern["execution_ms"] / 1e3, 0.0), "casts": tf.timing["casts"],
+             "scene_replays": frozen_calls(sc) - calls,
              "kernels": kern, "kernels_by_part": {"gbuffer": kernel_summary(k_gb),
                                                   "light_views": kernel_summary(k_views),
                                                   "technique": kernel_summary(k_tech)}}
@@ -318,6 +323,13 @@ def _ms(x) -> str:
     return "–" if x is None else f"{1e3 * x:.1f}"
 
 
+def _replays(n, floor, new_s) -> str:
+    """A frame's scene replays and their floors' share of the new frame, e.g. ``2 (66 %)``."""
+    if n is None or not floor:
+        return "–"
+    return f"{n} ({100.0 * n * floor['ms'] / (1e3 * new_s):.0f} %)" if new_s > 0 else str(n)
+
+
 def _kern(k: dict) -> str:
     other = sum(k["other"].values())
     return f"{k['jit']} + {other}"
@@ -372,12 +384,14 @@ def markdown(res: dict) -> str:
              "synchronised) and technique (the rest of the render), with Dr.Jit's kernel history on; host: that "
              "frame's wall time in which no kernel ran (wall minus the kernels' execution times from the kernel "
              "history; a share of the other three, not an addend); split total: their sum, above the new frame by "
-             "what the waits between the parts and the history cost (most for frames of many kernels). Warm: the "
-             "render with the light views cached (median). Kernels: JIT kernels + other history entries "
-             "(reductions, memsets, copies); copies: `Memcpy` entries (on LLVM, one-element reads; numpy readbacks "
-             "leave none, and CUDA logs no copies). First sync: where a frame first waits for the device "
-             "(`ForbidSynchronization`). Limit: texels cast + one tap per point and light, as raw `ray_test` rays "
-             "in one wavefront; virtual maps cast their tiles inside the technique at every render.", "",
+             "what the waits between the parts and the history cost (most for frames of many kernels). Scene "
+             "replays: that frame's stages replayed over the scene's Mitsuba scene (the G-buffer, the light-view "
+             "casts, the tile wavefronts), each paying the scene's replay floor (below), and those floors' share "
+             "of the new frame. Warm: the render with the light views cached (median). Kernels: JIT kernels + other "
+             "history entries (reductions, memsets, copies); copies: `Memcpy` entries (on LLVM, one-element reads; "
+             "numpy readbacks leave none, and CUDA logs no copies). First sync: where a frame first waits for the "
+             "device (`ForbidSynchronization`). Limit: texels cast + one tap per point and light, as raw `ray_test` "
+             "rays in one wavefront; virtual maps cast their tiles inside the technique at every render.", "",
              "## Goals", "", "Set for one H200 at 1920×1080 (on another machine or size they are shown for "
              "comparison only), over the techniques that cast shadow maps on the goal's scenes (the one-light "
              "goals: `contact`'s and `street`'s, cascades and virtual maps included): the worst one's figure (the "
@@ -396,17 +410,18 @@ def markdown(res: dict) -> str:
                       f"the scene's {floor['shapes']} shapes' variables, as the G-buffer's, each light-view cast's "
                       "and each tile wavefront's replays do).", ""]
         lines += [
-                  "| technique | new frame | G-buffer | light views | technique | host | split total | warm | "
-                  "kernels new / warm | copies new / warm | first sync, new frame | first sync, warm | "
-                  "rays (texels + taps) | limit | new / limit |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "| technique | new frame | G-buffer | light views | technique | host | split total | "
+                  "scene replays (floors' share) | warm | kernels new / warm | copies new / warm | "
+                  "first sync, new frame | first sync, warm | rays (texels + taps) | limit | new / limit |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for n, r in d["techniques"].items():
             nw, wm = r["new"], r["warm"]
             lim = r["limit_s"]
             over = "–" if lim is None else f"{r['new_over_limit']:.0f}×"
             lines.append(
                 f"| {n} | {_ms(r['new_s'])} | {_ms(nw['gbuffer_s'])} | {_ms(nw['light_views_s'])} | "
-                f"{_ms(nw['technique_s'])} | {_ms(nw['host_s'])} | {_ms(nw['total_s'])} | {_ms(wm['time_s'])} | "
+                f"{_ms(nw['technique_s'])} | {_ms(nw['host_s'])} | {_ms(nw['total_s'])} | "
+                f"{_replays(nw.get('scene_replays'), floor, r['new_s'])} | {_ms(wm['time_s'])} | "
                 f"{_kern(nw['kernels'])} / {_kern(wm['kernels'])} | {nw['kernels']['memcpy']} / "
                 f"{wm['kernels']['memcpy']} | {r['first_sync']['new'] or 'none'} | "
                 f"{r['first_sync']['warm'] or 'none'} | "

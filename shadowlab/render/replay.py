@@ -46,6 +46,7 @@ LIMIT = 32
 _stages: OrderedDict = OrderedDict()
 _failed: set = set()
 _owners: dict = {}
+_calls: dict = {}   # id(owner) -> its stages' calls through Dr.Jit's frozen function
 _DTYPES = {dr.VarType.Float32: np.float32, dr.VarType.Float64: np.float64, dr.VarType.UInt32: np.uint32,
            dr.VarType.Int32: np.int32}
 
@@ -103,6 +104,7 @@ def replayed(name: str, key, fn, owner, *inputs):
             _stages.popitem(last=False)
         return fn(*inputs)
     _stages.move_to_end(k)
+    _calls[id(owner)] = _calls.get(id(owner), 0) + 1
     for attempt in range(2):
         try:
             return stage(fn, inputs)
@@ -124,6 +126,7 @@ def replayed(name: str, key, fn, owner, *inputs):
 def _forget(owner_id: int) -> None:
     """Drop the recordings of a collected owner (its id may now be another object's)."""
     _owners.pop(owner_id, None)
+    _calls.pop(owner_id, None)
     for k in [k for k in _stages if k[2] == owner_id]:
         del _stages[k]
     for k in [k for k in _failed if k[2] == owner_id]:
@@ -149,6 +152,22 @@ def recordings(name: str, key, owner) -> int:
     """How many times the stage (``name``, ``key``) of ``owner`` has been recorded (0: none kept)."""
     stage = _stages.get((name, key, id(owner)))
     return 0 if stage is None else stage.frozen.n_recordings
+
+
+def frozen_calls(owner) -> int:
+    """How many calls of ``owner``'s stages have gone through Dr.Jit's frozen function (recorded or
+    replayed) so far. Each such call walks the variables of every input, the Mitsuba scene's
+    registered shapes included, before its kernels run (``shadowlab bench --only frames`` times that
+    walk as the scene's replay floor); a stage's first call, traced, is not one.
+
+    >>> from drjit.llvm import Float
+    >>> class Owner: pass
+    >>> owner = Owner()
+    >>> for v in (1.0, 2.0, 3.0): _ = replayed("doctest_calls", (), lambda x: x + 1.0, owner, Float(v))
+    >>> frozen_calls(owner)
+    2
+    """
+    return _calls.get(id(owner), 0)
 
 
 def clear() -> None:
