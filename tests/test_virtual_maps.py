@@ -252,6 +252,8 @@ def test_every_leaf_meets_t_max_and_the_leaves_cover_every_demanding_cell_once(s
         block = (slice(lv.iy[k] * sy, (lv.iy[k] + 1) * sy), slice(lv.ix[k] * sx, (lv.ix[k] + 1) * sx))
         cover[block] += 1
         assert lv.lx[k] == dx[block].max() and lv.ly[k] == dy[block].max() and count[block].sum() > 0
+        r = rect[block]   # its screen rectangle merges its cells' (an empty cell's is no rectangle)
+        assert lv.rect[k].tolist() == [r[..., 0].min(), r[..., 1].min(), r[..., 2].max(), r[..., 3].max()]
         assert lv.w[k] == 2 ** min(max(lv.lx[k] - lv.px[k], 0), lt)
     assert np.all(cover[count > 0] == 1)
     assert cover.max() <= 1

@@ -490,19 +490,20 @@ class Pyramid:
 
 
 def pyramid(dx: np.ndarray, dy: np.ndarray, count: np.ndarray, rect: np.ndarray) -> Pyramid:
-    """Block maxima of the cell demands over every 2^(K−a) × 2^(K−b) block (numpy reductions)."""
+    """Block maxima of the cell demands over every 2^(K−a) × 2^(K−b) block (numpy reductions: one
+    maximum per block for the demands and the rectangle together, whose minima are the maxima of the
+    negated corners, and one sum for the counts)."""
     n = dx.shape[0]
     K = int(round(math.log2(n)))
+    signs = np.array([1, 1, -1, -1, 1, 1], np.int64)
+    both = np.concatenate([np.stack([dx, dy], -1).astype(np.int64), np.asarray(rect, np.int64)], -1) * signs
     lx, ly, cnt, rc = {}, {}, {}, {}
     for a in range(K + 1):
         for b in range(K + 1):
             sh = (2 ** b, n >> b, 2 ** a, n >> a)
-            lx[a, b] = dx.reshape(sh).max(axis=(1, 3))
-            ly[a, b] = dy.reshape(sh).max(axis=(1, 3))
+            m = both.reshape(*sh, 6).max(axis=(1, 3)) * signs
+            lx[a, b], ly[a, b], rc[a, b] = m[..., 0], m[..., 1], m[..., 2:]
             cnt[a, b] = count.reshape(sh).sum(axis=(1, 3))
-            r = rect.reshape(2 ** b, n >> b, 2 ** a, n >> a, 4)
-            rc[a, b] = np.stack([r[..., 0].min(axis=(1, 3)), r[..., 1].min(axis=(1, 3)),
-                                 r[..., 2].max(axis=(1, 3)), r[..., 3].max(axis=(1, 3))], -1)
     return Pyramid(K, lx, ly, cnt, rc)
 
 
