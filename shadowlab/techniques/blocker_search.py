@@ -148,9 +148,10 @@ def tap(view, rec, g, u, v, du, dv, bias):
 
 
 def search_loop(view, rec, g, bias, w, px, py, n: int):
-    """Σ over the ``n`` search taps of (weighted blocker count, weighted blocker depth): a
-    symbolic loop (an unrolled one takes long to compile)."""
-    u, v = rec["u"], rec["v"]
+    """Σ over the ``n`` search taps of (weighted blocker count, weighted blocker depth), only at
+    the active receivers (``rec["active"]``; 0 elsewhere, where no caller reads them): a symbolic
+    loop (an unrolled one takes long to compile)."""
+    u, v, run = rec["u"], rec["v"], rec["active"]
 
     def body(k, cnt, zsum):
         c, z = tap(view, rec, g, u, v, dr.gather(mi.Float, px, k) * w, dr.gather(mi.Float, py, k) * w, bias)
@@ -158,7 +159,7 @@ def search_loop(view, rec, g, bias, w, px, py, n: int):
 
     m = dr.width(u)
     _, cnt, zsum = dr.while_loop((dr.zeros(mi.UInt32, m), dr.zeros(mi.Float, m), dr.zeros(mi.Float, m)),
-                                 lambda k, c, z: k < n, body, labels=("k", "count", "zsum"),
+                                 lambda k, c, z: run & (k < n), body, labels=("k", "count", "zsum"),
                                  label="pcss_blocker_search", max_iterations=n)
     return cnt, zsum
 
