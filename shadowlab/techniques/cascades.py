@@ -150,6 +150,7 @@ FILTER_SCALES = ("world", "texel")
 # ----------------------------------------------------------------------------------------------
 # splits (§4.1)
 
+
 def uniform_splits(n: float, f: float, N: int) -> np.ndarray:
     """C_i = n + i·(f − n)/N, i = 0 … N."""
     i = np.arange(N + 1, dtype=np.float64)
@@ -225,6 +226,15 @@ def select_map(insides):
     for i in range(len(insides) - 1, -1, -1):
         sel = dr.select(insides[i], mi.Int32(i), sel)
     return sel
+
+
+def compact_cascades() -> bool:
+    """Whether a cascade's filter runs on its own points only (gathered by ``dr.compress``, which
+    reads their count back): on the CPU, where a masked lane still costs its vector lane, so three
+    cascades over every point would be three lookups' work. On a GPU a masked thread costs almost
+    nothing, so each cascade's filter runs over every point with its points as the mask, and the
+    lookup waits for no count (the same values per point)."""
+    return dr.backend_v(mi.Float) != dr.JitBackend.CUDA
 
 
 # ----------------------------------------------------------------------------------------------
@@ -440,26 +450,33 @@ class CSM(Technique):
         A, B = dr.full(mi.Float, 1.0, npts), dr.full(mi.Float, 1.0, npts)
         a_in, b_in = dr.full(mi.Bool, False, npts), dr.full(mi.Bool, False, npts)
         maps = []
+        compact = compact_cascades()
         for i in range(N):
             mask = (sel == i) | (blended & (sel + 1 == i))
-            idx = dr.compress(mask)
             k = texel[0] / texel[i] if values["filter_scale"] == "world" else 1.0
             entry = {**map_entry(views[i]), "cascade": i, "split": [float(ctx.splits[i]), float(ctx.splits[i + 1])],
                      "texel_world": texel[i]}
             maps.append(entry)
-            if dr.width(idx) == 0:
-                continue
-            sub = SubFrame(frame.scene, Points(dr.gather(mi.Point3f, gb.p, idx), dr.gather(mi.Normal3f, gb.ng, idx),
-                                                 dr.gather(mi.Bool, gb.valid, idx)))
+            if compact:
+                idx = dr.compress(mask)
+                if dr.width(idx) == 0:
+                    continue
+                pts = Points(dr.gather(mi.Point3f, gb.p, idx), dr.gather(mi.Normal3f, gb.ng, idx),
+                             dr.gather(mi.Bool, gb.valid, idx))
+            else:
+                pts = Points(gb.p, gb.ng, gb.valid & mask)
             cv = self.cascade_values(ctx.family.name, ctx.fvalues, k)
-            r = ctx.family.evaluate(sub, light, views[i], cv, ctx.fctx)
+            r = ctx.family.evaluate(SubFrame(frame.scene, pts), light, views[i], cv, ctx.fctx)
             v = r.visibility
-            act = r.active if r.active is not None else dr.full(mi.Bool, True, dr.width(idx))
+            act = r.active if r.active is not None else dr.full(mi.Bool, True, dr.width(pts.valid))
             v = dr.select(act, v, 1.0)
-            full_v = dr.full(mi.Float, 1.0, npts)
-            full_a = dr.full(mi.Bool, False, npts)
-            dr.scatter(full_v, v, idx)
-            dr.scatter(full_a, act, idx)
+            if compact:
+                full_v = dr.full(mi.Float, 1.0, npts)
+                full_a = dr.full(mi.Bool, False, npts)
+                dr.scatter(full_v, v, idx)
+                dr.scatter(full_a, act, idx)
+            else:
+                full_v, full_a = dr.select(mask, v, 1.0), mask & act
             A = dr.select(sel == i, full_v, A)
             a_in = dr.select(sel == i, full_a, a_in)
             B = dr.select(sel + 1 == i, full_v, B)
