@@ -77,9 +77,11 @@ on ``street`` and ``boulevard`` in 14 of 15 (scene, filter) cases: with ``world`
 taps shrink to a fraction of its coarse texel (softness·t_0/t_i), which leaves its staircase edge
 hard, while a kernel of whole texels smooths it; the whole-image RMSE differs by at most 0.0022.
 
-**Cost**: each point is evaluated only in the cascade it selects (two in a blend band): per
-cascade the points are compacted (``dr.compress``) into a sub-G-buffer, evaluated, and scattered
-back; a loop over the ≤ 8 cascades, no loop over points.
+**Cost**: each point is evaluated only in the cascade it selects (two in a blend band), in a loop
+over the ≤ 8 cascades (no loop over points). On the CPU a cascade's points are compacted
+(``dr.compress``) into a sub-G-buffer, evaluated and scattered back; on a GPU the cascade's filter
+runs over every point with the cascade's points as its mask, so the lookup reads no count back
+(:func:`compact_cascades`; the same values per point).
 
 AOVs per light: ``cascade`` (index of the selected cascade, −1 unshadowed; ``blend_weight`` of the
 next one: the report colours them red, green, blue, … as Slika 4.3/4.5,
