@@ -58,8 +58,10 @@ PRIVATE_SCOPE = tuple(sorted(p.name for p in PKG.iterdir()
                              if (p.is_dir() and (p / "__init__.py").exists()) or (p.suffix == ".py")))
 
 #: public names of other APIs that start with "_": namedtuple's methods (so as not to clash with
-#: field names) and the standard library's ``os._exit`` (leave at once, after a signal)
-NAMEDTUPLE_API = frozenset({"_asdict", "_replace", "_fields", "_make", "_field_defaults", "_exit"})
+#: field names), the standard library's ``os._exit`` (leave at once, after a signal) and Dr.Jit's
+#: traversal protocol on a bound C++ object, ``_traverse_1_cb_ro`` (it has no other name)
+NAMEDTUPLE_API = frozenset({"_asdict", "_replace", "_fields", "_make", "_field_defaults", "_exit",
+                            "_traverse_1_cb_ro"})
 
 
 # --- 1. imports --------------------------------------------------------------------------------

@@ -284,8 +284,9 @@ def measure(sc, name: str, *, repeats: int = REPEATS, raw_cache: dict | None = N
 def replay_floor(sc, repeats: int = REPEATS) -> dict | None:
     """What every replayed stage of the scene pays before its kernels: a stage that does no work
     (one width-1 addition) but takes the scene's Mitsuba scene as its input, so that Dr.Jit walks
-    the scene's variables at each call (:mod:`shadowlab.render.replay`), timed like a frame's stages
-    (median wall ms of ``repeats`` replays). None on an SDF scene (its G-buffer is not replayed)."""
+    what a stage reads of the scene (its shapes' variables) at each call
+    (:mod:`shadowlab.render.replay`), timed like a frame's stages (median wall ms of ``repeats``
+    replays). None on an SDF scene (its G-buffer is not replayed)."""
     if sc.kind != "mitsuba":
         return None
     x = dr.opaque(mi.Float, 1.0, 1)

@@ -25,6 +25,14 @@ The contract of a stage ``fn(*inputs)`` called through :func:`replayed`:
   recording keep its scene alive: every Mitsuba object alive is traced into each call through a
   pointer (a BSDF's ``eval``), so scenes kept for their recordings slowed every later kernel.
 
+What Dr.Jit walks at each call. A frozen function walks the variables of every input at each call,
+before its kernels and again after them, and a Mitsuba scene among them is costly: walking it walks
+every shape, emitter and sensor it holds, and its arrays of shape pointers then make Dr.Jit walk
+every object registered with it again. :func:`replayed` therefore gives Dr.Jit, for a Mitsuba scene
+among the inputs, what a stage reads of it (:func:`_walked`): the scene's acceleration structure
+handles and the shapes, emitters and sensors of the scenes read, each walked once. A stage whose
+kernels read more (Dr.Jit refuses to record it) is recorded with the whole scene.
+
 Replays give the bits of a fresh trace (the same kernels on the same data; tests/test_replay.py
 checks it against the unrecorded stage, for moved light cameras and another scene object too). A
 stage whose inputs carry gradients, or called while a frozen function is being recorded, runs
@@ -39,6 +47,7 @@ import weakref
 from collections import OrderedDict
 
 import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 #: recorded configurations kept (least recently used dropped first): each holds its kernels
@@ -47,6 +56,12 @@ _stages: OrderedDict = OrderedDict()
 _failed: set = set()
 _owners: dict = {}
 _calls: dict = {}   # id(owner) -> its stages' calls through Dr.Jit's frozen function
+_whole: set = set()  # stages recorded with their whole Mitsuba scene (they read more than scene_arrays)
+_objects: dict = {}  # (id(owner), id(mi scene)) -> its shapes, emitters and sensors, for every scene read
+#: the variables of Mitsuba's acceleration structure, the first its Scene walks (mitsuba 3.9's
+#: ``EmbreeAccel``: the Embree scene, its two entry points, the shapes' registry ids; ``OptixAccel``:
+#: the OptiX scene and its shader binding table), by backend
+_ACCEL = {"llvm": ("UInt64", "UInt64", "UInt64", "UInt32"), "cuda": ("UInt64", "UInt64")}
 _DTYPES = {dr.VarType.Float32: np.float32, dr.VarType.Float64: np.float64, dr.VarType.UInt32: np.uint32,
            dr.VarType.Int32: np.int32}
 
@@ -95,6 +110,7 @@ def replayed(name: str, key, fn, owner, *inputs):
     k = (name, key, id(owner))
     if not enabled() or k in _failed or dr.grad_enabled(inputs) or dr.flag(dr.JitFlag.FreezingScope):
         return fn(*inputs)
+    _note_scenes(inputs, owner)
     stage = _stages.get(k)
     if stage is None:
         if id(owner) not in _owners:
@@ -105,13 +121,22 @@ def replayed(name: str, key, fn, owner, *inputs):
         return fn(*inputs)
     _stages.move_to_end(k)
     _calls[id(owner)] = _calls.get(id(owner), 0) + 1
-    for attempt in range(2):
+    retried = False
+    while True:
+        whole = k in _whole
         try:
-            return stage(fn, inputs)
+            return stage(fn, inputs if whole else _walked(inputs))
         except RuntimeError as e:
-            if "registry" in str(e) and attempt == 0:
+            if "record" in str(e) and not whole:
+                # its kernels read more of the scene than scene_arrays gives (e.g. another scene's shapes,
+                # registered too, enter its calls through pointers): record it with the whole scene
+                _whole.add(k)
+                stage = _stages[k] = _Stage()
+                continue
+            if "registry" in str(e) and not retried:
                 # objects were registered with Dr.Jit since the recording (another scene loaded), which
                 # a recording with calls through pointers cannot replay over: record again
+                retried = True
                 stage = _stages[k] = _Stage()
                 continue
             if "record" not in str(e) and "frozen function" not in str(e):
@@ -129,8 +154,70 @@ def _forget(owner_id: int) -> None:
     _calls.pop(owner_id, None)
     for k in [k for k in _stages if k[2] == owner_id]:
         del _stages[k]
-    for k in [k for k in _failed if k[2] == owner_id]:
-        _failed.discard(k)
+    for done in (_failed, _whole):
+        for k in [k for k in done if k[2] == owner_id]:
+            done.discard(k)
+    for k in [k for k in _objects if k[0] == owner_id]:
+        del _objects[k]
+
+
+def _note_scenes(inputs, owner) -> None:
+    """Keep the objects of each Mitsuba scene among ``inputs`` while ``owner`` lives (:func:`_walked`)."""
+    for x in inputs:
+        if isinstance(x, mi.Scene) and (id(owner), id(x)) not in _objects:
+            _objects[(id(owner), id(x))] = [list(x.shapes()), list(x.emitters()), list(x.sensors())]
+
+
+def _walked(inputs) -> tuple:
+    """``inputs`` with each Mitsuba scene replaced by what a stage reads of it: its acceleration
+    structure's arrays (:func:`accel_arrays`) and the objects of every scene the stages of a live
+    owner read. A call through a pointer (a shape's intersection, a BSDF's evaluation) traces every
+    object registered with Dr.Jit, so each of theirs must be an input too; an object of no such
+    scene makes Dr.Jit refuse the recording (:func:`replayed` then records the whole scene)."""
+    objects = list(_objects.values())
+    return tuple([accel_arrays(x), objects] if isinstance(x, mi.Scene) else x for x in inputs)
+
+
+class _Enough(Exception):
+    """Ends a walk of a scene's variables once the acceleration structure's are found."""
+
+
+class _Arrays:
+    """Holds the acceleration structure's arrays while Dr.Jit points them at the scene's variables."""
+
+
+def accel_arrays(mi_scene) -> list:
+    """The variables of ``mi_scene``'s acceleration structure (:data:`_ACCEL`), as Dr.Jit arrays that
+    refer to them: what a ray query reads of the scene itself, besides its shapes. Taken anew at every
+    call (the first entries of the scene's walk), so a rebuilt structure is never missed.
+
+    >>> import mitsuba as mi
+    >>> scene = mi.load_dict({"type": "scene", "ball": {"type": "sphere"}})
+    >>> [type(a).__name__ for a in accel_arrays(scene)] == [t.__name__ for t in _accel_types()]
+    True
+    """
+    types = _accel_types()
+    found = []
+
+    def visit(index, variant, domain):
+        found.append(index)
+        if len(found) == len(types):
+            raise _Enough
+
+    try:
+        with dr.scoped_set_flag(dr.JitFlag.EnableObjectTraversal, True):
+            mi_scene._traverse_1_cb_ro(visit)
+    except _Enough:
+        pass
+    holder = _Arrays()
+    holder.__dict__.update({f"a{i}": t(0) for i, t in enumerate(types[:len(found)])})
+    it = iter(found)
+    dr.detail.traverse_py_cb_rw(holder, lambda index, variant, domain: next(it))
+    return list(holder.__dict__.values())
+
+
+def _accel_types() -> list:
+    return [getattr(mi, t) for t in _ACCEL["cuda" if mi.variant().startswith("cuda") else "llvm"]]
 
 
 def uploaded(kind, values):
@@ -157,7 +244,7 @@ def recordings(name: str, key, owner) -> int:
 def frozen_calls(owner) -> int:
     """How many calls of ``owner``'s stages have gone through Dr.Jit's frozen function (recorded or
     replayed) so far. Each such call walks the variables of every input, the Mitsuba scene's
-    registered shapes included, before its kernels run (``shadowlab bench --only frames`` times that
+    shapes included, before its kernels run (``shadowlab bench --only frames`` times that
     walk as the scene's replay floor); a stage's first call, traced, is not one.
 
     >>> from drjit.llvm import Float
@@ -174,3 +261,5 @@ def clear() -> None:
     """Forget every recording (the next call of each stage traces it again)."""
     _stages.clear()
     _failed.clear()
+    _whole.clear()
+    _objects.clear()
