@@ -84,6 +84,26 @@ def test_first_sync_names_the_readback_and_none_without_one(mitsuba_backend):
     assert not dr.flag(dr.JitFlag.ForbidSynchronization)
 
 
+def test_first_sync_collects_garbage_before_and_none_during(mitsuba_backend):
+    """A scene of an earlier measurement freed by the garbage collector while synchronisation is
+    forbidden waits for the device in its destructor, which ends the process: garbage is collected
+    before ``fn`` (a cycle's finaliser has run when it starts) and the collector is off while it runs."""
+    import gc
+    import weakref
+
+    class Cycle:
+        pass
+
+    events = []
+    c = Cycle()
+    c.me = c
+    weakref.finalize(c, events.append, "freed")
+    del c
+    assert gc.isenabled()
+    assert frames.first_sync(lambda: events.append(gc.isenabled())) is None
+    assert events == ["freed", False] and gc.isenabled()
+
+
 def test_kernel_summary_counts_kernels_and_one_element_reads(mitsuba_backend):
     dr.sync_thread()
     dr.set_flag(dr.JitFlag.KernelHistory, True)

@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import gc
 import math
 import os
 import sys
@@ -137,7 +138,9 @@ def first_sync(fn) -> str | None:
 
     The line is taken from the frames the error passes through while it propagates (a trace
     function's ``exception`` events), not from its traceback: walking the traceback of an error
-    Dr.Jit raised inside a compress crashed the interpreter (a freed frame in it)."""
+    Dr.Jit raised inside a compress crashed the interpreter (a freed frame in it). Python's garbage
+    is collected before ``fn`` and not during it: an object freed there (a scene of an earlier
+    measurement) may wait for the device in its destructor, where the raise ends the process."""
     seen = []
 
     def local(frame, event, arg):
@@ -152,6 +155,9 @@ def first_sync(fn) -> str | None:
         frame.f_trace_lines = False  # only its exception events are wanted, not one call per line
         return local
 
+    collecting = gc.isenabled()
+    gc.collect()
+    gc.disable()
     dr.sync_thread()
     dr.set_flag(dr.JitFlag.ForbidSynchronization, True)
     previous = sys.gettrace()
@@ -170,6 +176,8 @@ def first_sync(fn) -> str | None:
     finally:
         sys.settrace(previous)
         dr.set_flag(dr.JitFlag.ForbidSynchronization, False)
+        if collecting:
+            gc.enable()
     return None
 
 
