@@ -56,7 +56,7 @@ _stages: OrderedDict = OrderedDict()
 _failed: set = set()
 _owners: dict = {}
 _calls: dict = {}   # id(owner) -> its stages' calls through Dr.Jit's frozen function
-_whole: set = set()  # stages recorded with their whole Mitsuba scene (they read more than scene_arrays)
+_whole: set = set()  # stages recorded with their whole Mitsuba scene (they read more than _walked gives)
 _objects: dict = {}  # (id(owner), id(mi scene)) -> its shapes, emitters and sensors, for every scene read
 #: the variables of Mitsuba's acceleration structure, the first its Scene walks (mitsuba 3.9's
 #: ``EmbreeAccel``: the Embree scene, its two entry points, the shapes' registry ids; ``OptixAccel``:
@@ -121,14 +121,15 @@ def replayed(name: str, key, fn, owner, *inputs):
         return fn(*inputs)
     _stages.move_to_end(k)
     _calls[id(owner)] = _calls.get(id(owner), 0) + 1
+    scenes = any(isinstance(x, mi.Scene) for x in inputs)
     retried = False
     while True:
-        whole = k in _whole
+        whole = k in _whole or not scenes
         try:
             return stage(fn, inputs if whole else _walked(inputs))
         except RuntimeError as e:
             if "record" in str(e) and not whole:
-                # its kernels read more of the scene than scene_arrays gives (e.g. another scene's shapes,
+                # its kernels read more of the scene than _walked gives (e.g. another scene's shapes,
                 # registered too, enter its calls through pointers): record it with the whole scene
                 _whole.add(k)
                 stage = _stages[k] = _Stage()
@@ -217,6 +218,7 @@ def accel_arrays(mi_scene) -> list:
 
 
 def _accel_types() -> list:
+    """The Mitsuba array types of :data:`_ACCEL` for the current variant's backend."""
     return [getattr(mi, t) for t in _ACCEL["cuda" if mi.variant().startswith("cuda") else "llvm"]]
 
 
